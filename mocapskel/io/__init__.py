@@ -1,0 +1,1 @@
+"""Readers and writers: C3D, TRC, BVH, skeleton files."""

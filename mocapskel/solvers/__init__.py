@@ -1,0 +1,1 @@
+"""Numerical kernels. They know no pipeline and do no I/O."""

@@ -1,0 +1,1 @@
+"""Pipeline stages: pure functions from one artifact to the next."""
