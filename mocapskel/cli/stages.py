@@ -1,0 +1,73 @@
+"""One command per stage (``mocapskel clean|merge-ids|segment|topology|joints|rigid|ik``) and ``export``."""
+from __future__ import annotations
+
+import logging
+
+import click
+
+from .. import artifacts, pipeline
+from ..io.bvh import write_bvh
+from ..stages import export
+from .main import cli
+from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
+
+log = logging.getLogger("mocapskel")
+
+_HELP = {
+    "clean": "Trim gap edges, turn sporadic jumps into gaps, drop short runs.",
+    "merge-ids": "Merge labels that are one physical marker (passive systems).",
+    "segment": "Group markers into rigid segments (spectral clustering).",
+    "topology": "Connect the segments into a tree (joint costs, minimum spanning tree).",
+    "joints": "Estimate every joint centre's trajectory.",
+    "rigid": "Fit a rigid skeleton: constant offsets, bone lengths.",
+    "ik": "Solve every frame by inverse kinematics.",
+}
+
+
+def _make(stage: str):
+    @click.argument("input", type=click.Path(dir_okay=True))
+    @click.option("-o", "--output", "output", required=True, type=click.Path(), help="Artifact (.npz) to write.")
+    @fit_options
+    @read_options
+    @cache_options
+    @common
+    def cmd(input, output, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+        check_output(output, input, suffixes=(".npz",))
+        params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
+        run = pipeline.run_until(input, stage, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
+        artifacts.save(run.artifact, output)
+        log.info("wrote %s (%s artifact)", output, run.artifact.kind)
+
+    cmd.__doc__ = (
+        f"{_HELP[stage]}\n\nINPUT is a take (.c3d, .trc) or the .npz artifact of an earlier stage;"
+        f" the stages in between are run.\n\n\b\nExample:\n    mocapskel {stage} take.c3d -o {stage.replace('-', '_')}.npz"
+    )
+    return cli.command(stage)(cmd)
+
+
+for _s in pipeline.STAGES:
+    _make(_s)
+
+
+@cli.command("export")
+@click.argument("input", type=click.Path(dir_okay=True))
+@click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
+@bvh_options
+@fit_options
+@read_options
+@cache_options
+@common
+def export_cmd(input, output, up, units, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+    """Write BVH from an ik artifact (or from any earlier input, running what is missing).
+
+    \b
+    Example:
+        mocapskel ik take.c3d -o take_ik.npz
+        mocapskel export take_ik.npz -o take.bvh --up z --units mm
+    """
+    check_output(output, input, suffixes=(".bvh",))
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
+    run = pipeline.run_until(input, "ik", params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
+    b = export.run(run.artifact, params["export"])
+    write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    log.info("wrote %s", output)

@@ -1,0 +1,199 @@
+"""Stage order, running up to a stage with the artifact cache, and ``fit``.
+
+    read ─ clean ─ merge-ids ─ segment ─ topology ─ joints ─ rigid ─ ik ─ export
+
+Files are read here (the input take or artifact) and cache entries are written
+here; the stages themselves touch no files.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from . import artifacts
+from .artifacts import Markers
+from .cache import Cache, file_key, stage_key
+from .errors import InputError, UsageError
+
+log = logging.getLogger("mocapskel")
+
+STAGES: tuple[str, ...] = ("clean", "merge-ids", "segment", "topology", "joints", "rigid", "ik")
+_MODULES = {
+    "clean": "clean",
+    "merge-ids": "merge_ids",
+    "segment": "segment",
+    "topology": "topology",
+    "joints": "joints",
+    "rigid": "rigid",
+    "ik": "ik",
+    "export": "export",
+}
+ARTIFACT_SUFFIX = ".npz"
+
+
+def stage_module(stage: str):
+    """The module implementing ``stage`` (it has VERSION, Params and run)."""
+    return importlib.import_module(f"mocapskel.stages.{_MODULES[stage]}")
+
+
+def stage_of(obj: Any) -> str:
+    """The last stage an artifact went through ("read" for raw markers)."""
+    if isinstance(obj, Markers):
+        return obj.stage
+    return artifacts.PRODUCED_BY[obj.kind]
+
+
+def _index(stage: str) -> int:
+    return -1 if stage == "read" else STAGES.index(stage)
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    exclude: tuple[str, ...] = ()
+    include: tuple[str, ...] = ()
+
+
+@dataclass
+class Run:
+    """What :func:`run_until` did."""
+
+    artifact: Any
+    key: str
+    seconds: dict[str, float] = field(default_factory=dict)
+    cached: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions()) -> tuple[Any, str]:
+    """Read a take (C3D/TRC) or a saved artifact. Returns (artifact, cache key of its content)."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError("no such file — check the path", str(path))
+    if p.is_dir():
+        raise InputError("is a folder, not a take — give a .c3d or .trc file", str(path))
+    key = file_key(p, dataclasses.asdict(read))
+    if p.suffix.lower() == ARTIFACT_SUFFIX:
+        return artifacts.load(p), key
+    from .io.markers import read_markers
+
+    return read_markers(p, exclude=read.exclude, include=read.include), key
+
+
+def run_until(
+    source: str | os.PathLike | Any,
+    target: str,
+    params: dict[str, Any] | None = None,
+    *,
+    cache: Cache | None = None,
+    read: ReadOptions = ReadOptions(),
+    key: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Run:
+    """Run the pipeline from ``source`` (path or artifact) up to and including ``target``.
+
+    ``params`` maps a stage name to its Params (defaults for stages not named).
+    Stages already done by the source are skipped; stages found in ``cache`` are
+    loaded instead of recomputed.
+    """
+    params = params or {}
+    cache = cache or Cache(None)
+    for name in params:
+        if name not in _MODULES:
+            raise UsageError(f"unknown stage {name!r}")
+    if target not in STAGES:
+        raise UsageError(f"unknown stage {target!r} (stages: {', '.join(STAGES)})")
+    t0 = time.perf_counter()
+    seconds: dict[str, float] = {}
+    if isinstance(source, (str, os.PathLike)):
+        obj, key = read_input(source, read)
+        seconds["read"] = time.perf_counter() - t0
+    else:
+        obj = source
+        key = key or "memory"
+    have = stage_of(obj)
+    if _index(have) > _index(target):
+        raise UsageError(f"the input is already past stage {target!r} (it is a {have!r} artifact)")
+    run = Run(artifact=obj, key=key, seconds=seconds, warnings=list(cache.warnings))
+    for stage in STAGES[_index(have) + 1 : _index(target) + 1]:
+        mod = stage_module(stage)
+        p = params.get(stage) or mod.Params()
+        k = stage_key(stage, mod.VERSION, p, run.key)
+        t = time.perf_counter()
+        hit = cache.get(k, stage) if key != "memory" else None
+        if hit is not None:
+            run.artifact = hit
+            run.cached.append(stage)
+            log.info("%-9s cached — skipping", stage)
+        else:
+            if progress:
+                progress(stage)
+            run.artifact = mod.run(run.artifact, p)
+            if key != "memory":
+                cache.put(k, run.artifact)
+            log.info("%-9s done in %.2f s", stage, time.perf_counter() - t)
+        run.seconds[stage] = time.perf_counter() - t
+        run.key = k
+    run.warnings.extend(w for w in cache.warnings if w not in run.warnings)
+    return run
+
+
+def make_params(
+    *,
+    segments: int | None = None,
+    joint_method: str = "auto",
+    rest_frame: int | None = None,
+    up: str = "y",
+    units: str = "cm",
+) -> dict[str, Any]:
+    """Stage parameters from the command line's options."""
+    from .stages import export, joints, rigid, segment
+
+    return {
+        "segment": segment.Params(n_segments=segments),
+        "joints": joints.Params(method=joint_method),
+        "rigid": rigid.Params(rest_frame=rest_frame),
+        "export": export.Params(up=up, units=units),
+    }
+
+
+@dataclass
+class FitResult:
+    """The outcome of :func:`fit`: the solved motion, its BVH form and the report."""
+
+    motion: Any
+    bvh: Any
+    report: dict
+    run: Run
+
+
+def fit(
+    source: str | os.PathLike | Any,
+    params: dict[str, Any] | None = None,
+    *,
+    cache: Cache | None = None,
+    read: ReadOptions = ReadOptions(),
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Fit a skeleton to a take and solve every frame: read → … → ik → export.
+
+    Nothing is written: the caller writes ``result.bvh`` (see
+    :func:`mocapskel.io.bvh.write_bvh`) and ``result.report`` as it likes.
+    """
+    from .report import build_report
+    from .stages import export
+
+    params = dict(params or {})
+    t = time.perf_counter()
+    run = run_until(source, "ik", params, cache=cache, read=read, progress=progress)
+    t_exp = time.perf_counter()
+    bvh = export.run(run.artifact, params.get("export") or export.Params())
+    run.seconds["export"] = time.perf_counter() - t_exp
+    run.seconds["total"] = time.perf_counter() - t
+    report = build_report(run, params)
+    return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)

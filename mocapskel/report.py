@@ -1,0 +1,89 @@
+"""The JSON report of a fit: what went in, what each stage did, how good the result is."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .artifacts import Motion, markers_of
+
+
+def _f(x: Any) -> Any:
+    """JSON-safe float (NaN/inf become None)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def build_report(run: Any, params: dict[str, Any]) -> dict:
+    """Assemble the report from the Motion artifact of a run (see README: report fields)."""
+    motion: Motion = run.artifact
+    skel = motion.skeleton
+    joints = skel.joints
+    topo = joints.topology if joints is not None else None
+    segs = topo.segments if topo is not None else None
+    mk = markers_of(motion)
+    pts = mk.points
+    vis = np.isfinite(pts).all(-1)
+    read_info = {k: v for k, v in mk.info.items() if k not in ("clean", "merge_ids")}
+    warnings: list[str] = list(run.warnings)
+    for v in mk.info.get("warnings", []) or []:
+        warnings.append(str(v))
+    rep: dict[str, Any] = {
+        "tool": {"name": "mocapskel", "version": __version__},
+        "input": {
+            "file": mk.source,
+            "frames": mk.n_frames,
+            "markers": mk.n_markers,
+            "rate_hz": _f(mk.rate),
+            "source_units": mk.units,
+            "visible_fraction": _f(vis.mean()) if vis.size else None,
+            "read": read_info,
+        },
+        "clean": mk.info.get("clean", {}),
+        "merge_ids": mk.info.get("merge_ids", {}),
+        "params": {k: dataclasses.asdict(v) for k, v in params.items() if dataclasses.is_dataclass(v)},
+    }
+    if segs is not None:
+        rep["segments"] = [
+            {"index": s, "name": skel.names[s], "markers": [mk.labels[i] for i in segs.members(s)]}
+            for s in range(segs.n_segments)
+        ]
+        rep["segments_left_out"] = [mk.labels[i] for i in np.flatnonzero(segs.group < 0)]
+    if topo is not None:
+        rep["topology"] = {
+            "root": skel.names[topo.root],
+            "edges": [
+                {"parent": skel.names[a], "child": skel.names[b], "joint_cost_mm2": _f(c)}
+                for (a, b), c in zip(topo.edges.tolist(), topo.cost.tolist())
+            ],
+        }
+        rep["joints"] = [
+            {
+                "parent": skel.names[a],
+                "child": skel.names[b],
+                "method": joints.method[e],
+                "residual_mm": _f(joints.residual[e]),
+                **(joints.info.get("per_joint", [{}] * len(joints.method))[e] if joints.info.get("per_joint") else {}),
+            }
+            for e, (a, b) in enumerate(topo.edges.tolist())
+        ]
+        warnings.extend(joints.info.get("warnings", []))
+    rep["bones"] = [
+        {"segment": skel.names[s], "parent": skel.names[p] if p >= 0 else None, "length_mm": _f(skel.bone_length[s]),
+         "rigid_fit_rms_mm": _f(skel.noise[s])}
+        for s, p in enumerate(skel.parent.tolist())
+    ]
+    rep["rest_frame"] = int(skel.rest_frame)
+    rep["ik"] = {
+        "marker_rms_mm": _f(motion.info.get("rms_mm")),
+        "marker_rms_mm_per_segment": {k: _f(v) for k, v in motion.info.get("rms_mm_per_segment", {}).items()},
+        "filled_fraction": _f(motion.info.get("filled_fraction")),
+    }
+    rep["seconds"] = {k: round(float(v), 4) for k, v in run.seconds.items()}
+    rep["cached_stages"] = list(run.cached)
+    rep["warnings"] = warnings
+    return rep

@@ -1,0 +1,729 @@
+"""Batched skeleton inverse kinematics: segment rotations and root position per frame.
+
+The skeleton is a tree of rigid segments. Segment ``s`` has a rest-pose origin
+``origin[s]`` (a child's origin is its joint with the parent) and carries
+markers at ``origin[s] + marker_local[m]`` at rest. At frame ``f`` every segment
+has a *global* rotation ``R_s`` (rest pose -> pose at ``f``) and the root
+segment's origin is at ``p``. Forward kinematics::
+
+    P_root = p
+    P_c    = P_parent + R_parent @ (origin[c] - origin[parent])
+    x_m    = P_s + R_s @ marker_local[m]          (m on segment s)
+
+:func:`solve_ik` minimises, for every frame independently but vectorised over
+all frames,
+
+    sum_m w_m |x_m - y_m|^2  +  prior_weight * sum_s |log(R_s R_prior,s^T)|^2
+
+by Levenberg-Marquardt with global left-multiplicative increments
+``R_s <- exp([d_s]x) R_s``. The normal equations are assembled from per-segment
+sums (no dense Jacobian) and solved by block elimination along the tree
+(leaves first), which creates no fill-in: the cost grows with the sum of squared
+segment depths, not with the cube of the number of segments.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rigid import kabsch
+
+__all__ = ["IKResult", "solve_ik"]
+
+
+@dataclass(frozen=True, eq=False)
+class IKResult:
+    """The result of :func:`solve_ik`.
+
+    root_pos : (F, 3) ndarray
+        Root segment origin per frame (mm).
+    rot : (F, S, 3, 3) ndarray
+        Global segment rotations relative to the rest pose.
+    residual : (F, M) ndarray
+        Distance of each marker from its model position after the fit (mm);
+        NaN where the marker is not seen or belongs to no segment.
+    n_iter : int
+        Number of iterations run (at most ``iterations``).
+    converged : (F,) ndarray of bool
+        Whether the last step of the frame was below the tolerance.
+    """
+
+    root_pos: np.ndarray
+    rot: np.ndarray
+    residual: np.ndarray
+    n_iter: int
+    converged: np.ndarray
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def _exp(rv: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vectors (..., 3) -> rotation matrices (..., 3, 3)."""
+    th2 = np.einsum("...i,...i->...", rv, rv)
+    th = np.sqrt(th2)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1 - th2 / 6 + th2 * th2 / 120, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - np.cos(ths)) / (ths * ths))
+    K = _hat(rv)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def _mat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z), w >= 0."""
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cand = np.stack([tr, m00, m11, m22], -1)
+    k = np.argmax(cand, -1)
+    q = np.empty(R.shape[:-2] + (4,))
+    # Shepperd: use the largest of 4 (w, x, y, z) candidates
+    s0 = np.sqrt(np.maximum(1 + tr, 1e-300)) * 2
+    s1 = np.sqrt(np.maximum(1 + m00 - m11 - m22, 1e-300)) * 2
+    s2 = np.sqrt(np.maximum(1 + m11 - m00 - m22, 1e-300)) * 2
+    s3 = np.sqrt(np.maximum(1 + m22 - m00 - m11, 1e-300)) * 2
+    r21, r12 = R[..., 2, 1], R[..., 1, 2]
+    r02, r20 = R[..., 0, 2], R[..., 2, 0]
+    r10, r01 = R[..., 1, 0], R[..., 0, 1]
+    q0 = np.stack([s0 / 4, (r21 - r12) / s0, (r02 - r20) / s0, (r10 - r01) / s0], -1)
+    q1 = np.stack([(r21 - r12) / s1, s1 / 4, (r01 + r10) / s1, (r02 + r20) / s1], -1)
+    q2 = np.stack([(r02 - r20) / s2, (r01 + r10) / s2, s2 / 4, (r12 + r21) / s2], -1)
+    q3 = np.stack([(r10 - r01) / s3, (r02 + r20) / s3, (r12 + r21) / s3, s3 / 4], -1)
+    q = np.choose(k[..., None], [q0, q1, q2, q3])
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def _quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) (w, x, y, z) -> rotation matrices (..., 3, 3)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi]."""
+    q = _mat_to_quat(R)
+    w, v = q[..., 0], q[..., 1:]
+    n = np.linalg.norm(v, axis=-1)
+    ang = 2 * np.arctan2(n, w)
+    scale = np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 2 / np.maximum(w, 1e-300))
+    return v * scale[..., None]
+
+
+def _project_so3(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrices (polar decomposition with a proper determinant)."""
+    U, _, Vt = np.linalg.svd(R)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U = U.copy()
+    U[..., 2] *= d[..., None]
+    return U @ Vt
+
+
+def _slerp_fill(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill rotations over time: slerp between the nearest valid frames, hold at the ends.
+
+    Parameters
+    ----------
+    R : (F, K, 3, 3) ndarray
+        Rotations; values at invalid frames are ignored.
+    valid : (F, K) ndarray of bool
+
+    Returns
+    -------
+    (F, K, 3, 3) ndarray
+        Filled rotations; NaN for columns ``k`` with no valid frame.
+    """
+    F = R.shape[0]
+    q = np.where(valid[..., None], _mat_to_quat(np.where(valid[..., None, None], R, np.eye(3))), 0.0)
+    fr = np.arange(F)[:, None]
+    prev = np.maximum.accumulate(np.where(valid, fr, -1), axis=0)
+    nxt = np.minimum.accumulate(np.where(valid, fr, F)[::-1], axis=0)[::-1]
+    has_p, has_n = prev >= 0, nxt < F
+    pi, ni = np.clip(prev, 0, F - 1), np.clip(nxt, 0, F - 1)
+    cols = np.arange(R.shape[1])[None, :]
+    qa, qb = q[pi, cols], q[ni, cols]
+    qb = np.where((qa * qb).sum(-1, keepdims=True) < 0, -qb, qb)
+    span = np.where(has_p & has_n & (nxt > prev), nxt - prev, 1)
+    alpha = np.where(has_p & has_n, (fr - prev) / span, 0.0)
+    alpha = np.where(~has_p, 1.0, alpha)  # before the first valid frame: hold the next
+    c = np.clip((qa * qb).sum(-1), -1.0, 1.0)
+    th = np.arccos(c)
+    st = np.sin(th)
+    lin = st < 1e-6
+    sts = np.where(lin, 1.0, st)
+    wa = np.where(lin, 1 - alpha, np.sin((1 - alpha) * th) / sts)
+    wb = np.where(lin, alpha, np.sin(alpha * th) / sts)
+    qi = wa[..., None] * qa + wb[..., None] * qb
+    nq = np.linalg.norm(qi, axis=-1, keepdims=True)
+    qi = qi / np.where(nq > 0, nq, 1.0)
+    out = _quat_to_mat(qi)
+    out[~(has_p | has_n)] = np.nan
+    return np.where(valid[..., None, None], R, out)
+
+
+def _interp_fill(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Linear interpolation over time of (F, D) values at invalid frames (hold at ends)."""
+    F = x.shape[0]
+    idx = np.flatnonzero(valid)
+    out = x.copy()
+    if idx.size == 0 or idx.size == F:
+        return out
+    bad = np.flatnonzero(~valid)
+    for d in range(x.shape[1]):
+        out[bad, d] = np.interp(bad, idx, x[idx, d])
+    return out
+
+
+def _swing(ref_rot: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking ``ref_rot @ u`` to ``v``, composed with ``ref_rot``.
+
+    ref_rot (N, 3, 3), u and v (N, 3) unit vectors -> (N, 3, 3).
+    """
+    a = np.einsum("nij,nj->ni", ref_rot, u)
+    cr = np.cross(a, v)
+    s = np.linalg.norm(cr, axis=-1)
+    c = (a * v).sum(-1)
+    ang = np.arctan2(s, c)
+    # axis: a x v, or any perpendicular to a when a and v are (anti)parallel
+    e = np.eye(3)[np.argmin(np.abs(a), -1)]
+    perp = np.cross(a, e)
+    perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
+    axis = np.where((s > 1e-12)[:, None], cr / np.where(s > 1e-12, s, 1.0)[:, None], perp)
+    return _exp(axis * ang[:, None]) @ ref_rot
+
+
+# --------------------------------------------------------------------------- tree bookkeeping
+
+
+class _Tree:
+    """Topological order and the index tables of the tree-structured normal equations.
+
+    Nodes of the linear system: node 0 is the root position, node ``s + 1`` is
+    segment ``s`` (in topological order). Node 0 is the parent of node 1.
+    """
+
+    def __init__(self, parent: np.ndarray):
+        S = len(parent)
+        roots = np.flatnonzero(parent < 0)
+        if len(roots) != 1:
+            raise ValueError(f"the skeleton must have exactly one root (parent -1), it has {len(roots)}")
+        if np.any(parent >= S) or np.any((parent < 0) & (parent != -1)):
+            raise ValueError("parent indices must be -1 or a segment index")
+        children: list[list[int]] = [[] for _ in range(S)]
+        for s, p in enumerate(parent):
+            if p >= 0:
+                children[p].append(s)
+        order: list[int] = [int(roots[0])]
+        i = 0
+        while i < len(order):
+            order.extend(children[order[i]])
+            i += 1
+        if len(order) != S:
+            raise ValueError("parent does not describe a tree (a cycle or an unreachable segment)")
+        self.perm = np.array(order)  # new -> old
+        inv = np.empty(S, dtype=int)
+        inv[self.perm] = np.arange(S)
+        self.S = S
+        self.par = np.array([inv[parent[o]] if parent[o] >= 0 else -1 for o in order])  # new indices
+        self.children = [[int(inv[c]) for c in children[o]] for o in order]
+
+        N = S + 1
+        npar = np.concatenate([[-1], self.par + 1])  # node parents; node 1's parent is node 0
+        npar[1] = 0
+        anc: list[list[int]] = [[]]
+        for j in range(1, N):
+            anc.append(anc[npar[j]] + [int(npar[j])])
+        self.anc = anc  # strict ancestors, root-first
+        qidx = -np.ones((N, N), dtype=int)
+        q = 0
+        for j in range(N):
+            for a in anc[j] + [j]:
+                qidx[a, j] = q
+                q += 1
+        self.Q = q
+        self.qidx = qidx
+        self.q_diag = np.array([qidx[j, j] for j in range(N)])
+        self.q_p = qidx[0, 1:]  # (S,) p-row blocks
+        # segment-segment strict-ancestor pairs (k anc of l), with c = child of k towards l
+        K, L, C = [], [], []
+        for l in range(S):
+            path = [a - 1 for a in anc[l + 1][1:]] + [l]  # segments from root to l
+            for i in range(len(path) - 1):
+                K.append(path[i])
+                L.append(l)
+                C.append(path[i + 1])
+        self.pk, self.pl, self.pc = np.array(K, int), np.array(L, int), np.array(C, int)
+        self.q_kl = qidx[self.pk + 1, self.pl + 1] if K else np.zeros(0, int)
+        # elimination tables per node (leaves first is reverse node order)
+        self.elim = []
+        for j in range(N - 1, 0, -1):
+            a = anc[j]
+            xq = qidx[a, j]
+            ii, kk, tq = [], [], []
+            for i1 in range(len(a)):
+                for k1 in range(i1, len(a)):
+                    ii.append(i1)
+                    kk.append(k1)
+                    tq.append(qidx[a[i1], a[k1]])
+            self.elim.append((j, np.array(a), xq, np.array(ii), np.array(kk), np.array(tq)))
+        # child -> parent incidence (S, S), for summing child terms into parents
+        Pm = np.zeros((S, S))
+        for c in range(S):
+            if self.par[c] >= 0:
+                Pm[c, self.par[c]] = 1.0
+        self.Pm = Pm
+        self.nonroot = np.flatnonzero(self.par >= 0)
+
+
+# --------------------------------------------------------------------------- the model
+
+
+class _Model:
+    """Marker model on a reordered tree, with the per-iteration kernels."""
+
+    def __init__(self, tree: _Tree, origin: np.ndarray, seg: np.ndarray, local: np.ndarray):
+        self.t = tree
+        S = tree.S
+        self.origin = origin
+        off = np.zeros((S, 3))
+        nr = tree.nonroot
+        off[nr] = origin[nr] - origin[tree.par[nr]]
+        self.off = off
+        self.seg = seg  # (M,) segment of every used marker
+        self.local = local  # (M, 3)
+        self.E = np.zeros((len(seg), S))
+        self.E[np.arange(len(seg)), seg] = 1.0
+        self.members = [np.flatnonzero(seg == s) for s in range(S)]
+
+    # ---- forward kinematics: everything in (F, 3, ·) layout, markers last
+    def fk(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bone vectors G (F, S, 3), origins P (F, 3, S), marker levers L (F, 3, M)."""
+        t = self.t
+        F = p.shape[0]
+        G = np.zeros((F, t.S, 3))
+        nr = t.nonroot
+        if nr.size:
+            G[:, nr] = np.einsum("fsij,sj->fsi", R[:, t.par[nr]], self.off[nr])
+        P = np.empty((F, 3, t.S))
+        P[:, :, 0] = p
+        for s in nr:
+            P[:, :, s] = P[:, :, t.par[s]] + G[:, s]
+        L = np.empty((F, 3, len(self.seg)))
+        for s, ms in enumerate(self.members):
+            if ms.size:
+                L[:, :, ms] = R[:, s] @ self.local[ms].T
+        return G, P, L
+
+    def residual(self, p, R, y, w):
+        G, P, L = self.fk(p, R)
+        r = P[:, :, self.seg] + L - y  # (F, 3, M)
+        cost = np.einsum("fm,fim,fim->f", w, r, r)
+        return G, L, r, cost
+
+    def normal_equations(self, G, L, r, w, e, pw):
+        """Blocks (F, Q, 3, 3) and right-hand side (F, N, 3) of J^T W J and J^T W r (+ prior)."""
+        t = self.t
+        F, S = r.shape[0], t.S
+        E = self.E
+        M = r.shape[2]
+        wL = w[:, None, :] * L
+        wr = w[:, None, :] * r
+
+        def segsum(a):  # (F, C, M) -> (F, C, S)
+            C = a.shape[1]
+            return (a.reshape(F * C, M) @ E).reshape(F, C, S)
+
+        W_own = w @ E  # (F, S)
+        A_own = segsum(wL)  # (F, 3, S)
+        Rs_own = segsum(wr)
+        T_own = segsum(np.cross(wL, r, axis=1))
+        N_own = segsum((wL[:, :, None, :] * L[:, None, :, :]).reshape(F, 9, M)).reshape(F, 3, 3, S)
+        # subtree sums (children before parents = reverse topological order)
+        W_sub = W_own.copy()
+        Rs_sub = Rs_own.copy()
+        for s in t.nonroot[::-1]:
+            W_sub[:, t.par[s]] += W_sub[:, s]
+            Rs_sub[:, :, t.par[s]] += Rs_sub[:, :, s]
+        Gt = G.transpose(0, 2, 1)  # (F, 3, S): G[:, :, c] is the bone from parent(c) to c
+        WG = W_sub[:, None, :] * Gt
+        Pm = t.Pm
+        B = A_own + (WG.reshape(F * 3, S) @ Pm).reshape(F, 3, S)
+        N = N_own + ((WG[:, :, None, :] * Gt[:, None, :, :]).reshape(F * 9, S) @ Pm).reshape(F, 3, 3, S)
+        T = T_own + (np.cross(Gt, Rs_sub, axis=1).reshape(F * 3, S) @ Pm).reshape(F, 3, S)
+
+        H = np.zeros((F, t.Q, 3, 3))
+        I3 = np.eye(3)
+        Ns = N.transpose(0, 3, 1, 2)  # (F, S, 3, 3)
+        tr = np.trace(Ns, axis1=-2, axis2=-1)
+        H[:, t.q_diag[1:]] = tr[..., None, None] * I3 - Ns + pw * I3
+        H[:, t.q_diag[0]] = W_sub[:, 0, None, None] * I3
+        Bs = B.transpose(0, 2, 1)  # (F, S, 3)
+        H[:, t.q_p] = -_hat(Bs)
+        if t.pk.size:
+            a = G[:, t.pc]  # (F, Q2, 3)
+            b = Bs[:, t.pl]
+            H[:, t.q_kl] = (a * b).sum(-1)[..., None, None] * I3 - b[..., :, None] * a[..., None, :]
+        g = np.empty((F, S + 1, 3))
+        g[:, 0] = Rs_sub[:, :, 0]
+        g[:, 1:] = T.transpose(0, 2, 1) + pw * e
+        return H, g
+
+    def solve(self, H: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """Solve the tree-structured system H x = g by block elimination (leaves first).
+
+        H (F, Q, 3, 3) is overwritten. Returns x (F, N, 3).
+        """
+        t = self.t
+        F = H.shape[0]
+        g = g.copy()
+        saved = []
+        for j, anc, xq, ii, kk, tq in t.elim:
+            d = len(anc)
+            D = H[:, t.q_diag[j]]
+            X = H[:, xq]  # (F, d, 3, 3): blocks (a, j)
+            rhs = np.concatenate([X.transpose(0, 3, 1, 2).reshape(F, 3, 3 * d), g[:, j, :, None]], axis=2)
+            Y = np.linalg.solve(D, rhs)  # (F, 3, 3d + 1)
+            yg = Y[:, :, -1]
+            Yb = Y[:, :, :-1].reshape(F, 3, d, 3).transpose(0, 2, 1, 3)  # (F, d, 3, 3): D^-1 H_(j, a)
+            H[:, tq] -= X[:, ii] @ Yb[:, kk]
+            g[:, anc] -= np.einsum("fdab,fb->fda", X, yg)
+            saved.append((j, anc, Yb, yg))
+        x = np.empty_like(g)
+        x[:, 0] = np.linalg.solve(H[:, t.q_diag[0]], g[:, 0, :, None])[..., 0]
+        for j, anc, Yb, yg in reversed(saved):
+            x[:, j] = yg - np.einsum("fdab,fdb->fa", Yb, x[:, anc])
+        return x
+
+
+def _dense_system(model: _Model, p, R, y, w, e, pw) -> tuple[np.ndarray, np.ndarray]:
+    """Reference normal equations with a dense Jacobian: H (F, n, n), g (F, n), n = 3 + 3S."""
+    t = model.t
+    F, S, M = p.shape[0], t.S, len(model.seg)
+    G, L, r, _ = model.residual(p, R, y, w)
+    J = np.zeros((F, M, 3, S + 1, 3))
+    J[:, :, :, 0, :] = np.eye(3)
+    for m in range(M):
+        s = model.seg[m]
+        path = [a - 1 for a in t.anc[s + 1][1:]] + [s]
+        for i, k in enumerate(path):
+            u = L[:, :, m] if k == s else G[:, path[i + 1]]
+            J[:, m, :, k + 1, :] = -_hat(u)
+    J = J.reshape(F, 3 * M, 3 * (S + 1))
+    wv = np.repeat(w, 3, axis=1)
+    rv = r.transpose(0, 2, 1).reshape(F, 3 * M)
+    H = np.einsum("fki,fk,fkj->fij", J, wv, J)
+    g = np.einsum("fki,fk->fi", J, wv * rv)
+    H[:, 3:, 3:] += pw * np.eye(3 * S)
+    g[:, 3:] += pw * e.reshape(F, 3 * S)
+    return H, g
+
+
+# --------------------------------------------------------------------------- initialisation
+
+
+def _initial_rotations(model: _Model, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Data-driven rotations (F, S, 3, 3) for every segment and frame (all finite).
+
+    1. Kabsch of each segment's visible markers (>= 3, not collinear).
+    2. Twice, for frames still unsolved: Kabsch of the segment's markers plus
+       its joints placed by the neighbours solved in that frame (the parent's
+       pose places the segment's origin, a child's pose places the child's joint).
+    3. Segments solved in some frames: slerp over time between solved frames
+       (held at the ends). Segments never solved: the parent's rotation
+       (identity for the root).
+    4. Frames still unsolved where the available points give one direction
+       (two points, or collinear ones): the smallest rotation of the step-3
+       rotation that matches that direction.
+    """
+    t = model.t
+    F, S = y.shape[0], t.S
+    yt = y.transpose(0, 2, 1)  # (F, M, 3)
+    rest = model.origin[model.seg] + model.local  # (M, 3)
+    Pmax = max((len(ms) for ms in model.members), default=0)
+    # step 1, all segments in one batched call (padding has weight 0)
+    ref = np.full((S, max(Pmax, 1), 3), np.nan)
+    obs = np.full((F, S, max(Pmax, 1), 3), np.nan)
+    ww = np.zeros((F, S, max(Pmax, 1)))
+    for s, ms in enumerate(model.members):
+        ref[s, : len(ms)] = rest[ms]
+        obs[:, s, : len(ms)] = yt[:, ms]
+        ww[:, s, : len(ms)] = w[:, ms]
+    Rk, tk, _ = kabsch(
+        np.broadcast_to(ref, (F, S) + ref.shape[1:]).reshape(F * S, -1, 3),
+        obs.reshape(F * S, -1, 3),
+        ww.reshape(F * S, -1),
+    )
+    Rk = Rk.reshape(F, S, 3, 3)
+    tk = tk.reshape(F, S, 3)
+    solved = np.isfinite(Rk[..., 0, 0])
+
+    def augmented(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rest points, observed points, weights of segment s's markers and joints."""
+        ms = model.members[s]
+        r_pts = [rest[ms]]
+        o_pts = [yt[:, ms]]
+        wts = [w[:, ms]]
+        nb = ([t.par[s]] if t.par[s] >= 0 else []) + t.children[s]
+        for n in nb:
+            j = s if n == t.par[s] else n  # the joint between s and n is the origin of the child
+            pos = np.einsum("fij,j->fi", Rk[:, n], model.origin[j]) + tk[:, n]
+            r_pts.append(model.origin[j][None])
+            o_pts.append(pos[:, None])
+            wts.append(solved[:, n, None].astype(float))
+        return np.concatenate(r_pts), np.concatenate(o_pts, axis=1), np.concatenate(wts, axis=1)
+
+    # step 2
+    for _ in range(2):
+        for s in range(S):
+            todo = ~solved[:, s]
+            if not todo.any():
+                continue
+            rp, op, wp = augmented(s)
+            R2, t2, _ = kabsch(np.broadcast_to(rp, (int(todo.sum()),) + rp.shape), op[todo], wp[todo])
+            ok = np.isfinite(R2[:, 0, 0])
+            idx = np.flatnonzero(todo)[ok]
+            Rk[idx, s], tk[idx, s] = R2[ok], t2[ok]
+            solved[idx, s] = True
+    # steps 3 and 4, parents first
+    Rf = _slerp_fill(Rk, solved)
+    for s in range(S):
+        if not solved[:, s].any():
+            Rf[:, s] = Rf[:, t.par[s]] if t.par[s] >= 0 else np.eye(3)
+        todo = ~solved[:, s]
+        if not todo.any():
+            continue
+        rp, op, wp = augmented(s)
+        op, wp = op[todo], wp[todo] * np.isfinite(op[todo]).all(-1)
+        opz = np.where(wp[..., None] > 0, op, 0.0)
+        W = wp.sum(1)
+        Ws = np.where(W > 0, W, 1.0)[:, None]
+        a = rp[None] - (wp @ rp / Ws)[:, None]
+        b = opz - (np.einsum("fp,fpi->fi", wp, opz) / Ws)[:, None]
+        Hc = np.einsum("fp,fpi,fpj->fij", wp, a, b)
+        U, sv, Vt = np.linalg.svd(Hc)
+        spread = np.einsum("fp,fpi,fpi->f", wp, a, a)
+        use = ((wp > 0).sum(1) >= 2) & (sv[:, 0] > 1e-9 * spread) & (spread > 0)
+        if use.any():
+            idx = np.flatnonzero(todo)[use]
+            Rf[idx, s] = _swing(Rf[idx, s], U[use, :, 0], Vt[use, 0, :])
+    return Rf
+
+
+def _root_from_rotations(model: _Model, R: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Root position (F, 3) given rotations: weighted mean of observed minus the FK at p = 0."""
+    F = R.shape[0]
+    _, P, L = model.fk(np.zeros((F, 3)), R)
+    x0 = P[:, :, model.seg] + L
+    W = w.sum(1)
+    p = np.einsum("fm,fim->fi", w, y - x0) / np.where(W > 0, W, 1.0)[:, None]
+    return _interp_fill(p, W > 0)
+
+
+# --------------------------------------------------------------------------- solver
+
+
+def solve_ik(
+    parent: np.ndarray,
+    origin: np.ndarray,
+    marker_segment: np.ndarray,
+    marker_local: np.ndarray,
+    observed: np.ndarray,
+    *,
+    init_rot: np.ndarray | None = None,
+    init_root: np.ndarray | None = None,
+    prior_rot: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+    iterations: int = 10,
+    damping: float = 1e-3,
+    prior_weight: float = 10.0,
+    tol: float = 1e-6,
+) -> IKResult:
+    """Segment rotations and root position that best fit the markers, every frame.
+
+    Minimises, per frame (all frames at once, no loop over frames),
+    ``sum_m w_m |x_m - y_m|^2 + prior_weight * sum_s |log(R_s R_prior,s^T)|^2``
+    where ``x_m`` is the forward-kinematics position of marker ``m`` (see the
+    module docstring), by Levenberg-Marquardt with a damping adapted per frame.
+
+    Parameters
+    ----------
+    parent : (S,) int ndarray
+        Parent of every segment, -1 for the (single) root. Any order; it is
+        sorted topologically inside.
+    origin : (S, 3) ndarray
+        Rest-pose segment origins (mm); a child's origin is its joint with the parent.
+    marker_segment : (M,) int ndarray
+        Segment carrying each marker, -1 for markers to ignore.
+    marker_local : (M, 3) ndarray
+        Marker rest position minus its segment's origin (mm).
+    observed : (F, M, 3) ndarray
+        Observed markers (mm), NaN where not seen.
+    init_rot : (F, S, 3, 3) ndarray, optional
+        Starting rotations (projected onto rotations). Default: ``prior_rot``.
+    init_root : (F, 3) ndarray, optional
+        Starting root positions. Default: from the starting rotations, the
+        weighted mean offset of the observed markers from the model; frames
+        without markers are interpolated linearly over time.
+    prior_rot : (F, S, 3, 3) ndarray, optional
+        Target of the rotation prior. Default: built from the data — per
+        segment, Kabsch of its markers where at least 3 non-collinear ones
+        are seen; else Kabsch of its markers plus the joints placed by the
+        neighbouring segments solved in that frame; else slerp over time
+        between such frames (held at the ends) or, for a segment never
+        solved, its parent's rotation; finally, where the available points
+        give a single direction, the smallest rotation matching it. So the
+        prior agrees with the data where the data determine the rotation,
+        and fills gaps and undetermined twists smoothly.
+    weights : (F, M) or (M,) ndarray, optional
+        Non-negative marker weights (default 1; NaN markers get 0).
+    iterations : int, optional
+        Maximum number of Levenberg-Marquardt iterations.
+    damping : float, optional
+        Initial Levenberg-Marquardt damping (relative to the diagonal).
+    prior_weight : float, optional
+        Weight of the rotation prior in mm^2 per rad^2: the prior pulls like
+        one marker ``sqrt(prior_weight)`` mm from the rotation axis (default:
+        about 3 mm). Keep it positive so that segments with too few markers
+        (or none) in a frame stay determined.
+    tol : float, optional
+        A frame has converged when its last step moves no point of the
+        skeleton by more than about ``tol`` mm.
+
+    Returns
+    -------
+    IKResult
+        ``root_pos`` (F, 3), ``rot`` (F, S, 3, 3), ``residual`` (F, M), ``n_iter``,
+        ``converged`` (F,). All finite (``residual`` is NaN for unseen markers).
+
+    Raises
+    ------
+    ValueError
+        Inconsistent shapes, a parent array that is not a tree, or no marker
+        on any segment seen in any frame.
+    """
+    parent = np.asarray(parent).astype(int)
+    origin = np.asarray(origin, dtype=float)
+    marker_segment = np.asarray(marker_segment).astype(int)
+    marker_local = np.asarray(marker_local, dtype=float)
+    observed = np.asarray(observed, dtype=float)
+    S = len(parent)
+    if parent.ndim != 1 or S == 0:
+        raise ValueError("parent must be a non-empty 1-d array")
+    if origin.shape != (S, 3):
+        raise ValueError(f"origin must be ({S}, 3), got {origin.shape}")
+    M = len(marker_segment)
+    if marker_local.shape != (M, 3):
+        raise ValueError(f"marker_local must be ({M}, 3), got {marker_local.shape}")
+    if observed.ndim != 3 or observed.shape[1:] != (M, 3):
+        raise ValueError(f"observed must be (F, {M}, 3), got {observed.shape}")
+    if np.any(marker_segment < -1) or np.any(marker_segment >= S):
+        raise ValueError("marker_segment must be -1 or a segment index")
+    if not (np.isfinite(origin).all() and np.isfinite(marker_local[marker_segment >= 0]).all()):
+        raise ValueError("origin and marker_local must be finite")
+    F = observed.shape[0]
+    tree = _Tree(parent)
+    inv = np.empty(S, dtype=int)
+    inv[tree.perm] = np.arange(S)
+
+    used = np.flatnonzero(marker_segment >= 0)
+    seg = inv[marker_segment[used]]
+    model = _Model(tree, origin[tree.perm], seg, marker_local[used])
+    y = observed[:, used]
+    if weights is None:
+        w = np.ones((F, len(used)))
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), (F, M))[:, used].copy()
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("weights must be finite and non-negative")
+    seen = np.isfinite(y).all(-1)
+    w = np.where(seen, w, 0.0)
+    if F == 0 or not np.any(w > 0):
+        raise ValueError("no marker on any segment is seen in any frame: nothing to solve")
+    y = np.where(seen[..., None], y, 0.0).transpose(0, 2, 1).copy()  # (F, 3, M)
+    pw = float(prior_weight)
+    if pw < 0 or damping < 0:
+        raise ValueError("prior_weight and damping must be non-negative")
+
+    # prior and starting point
+    if prior_rot is None:
+        R_prior = _initial_rotations(model, y, w)
+    else:
+        prior_rot = np.asarray(prior_rot, dtype=float)
+        if prior_rot.shape != (F, S, 3, 3) or not np.isfinite(prior_rot).all():
+            raise ValueError(f"prior_rot must be finite, ({F}, {S}, 3, 3)")
+        R_prior = _project_so3(prior_rot[:, tree.perm])
+    if init_rot is None:
+        R = R_prior.copy()
+    else:
+        init_rot = np.asarray(init_rot, dtype=float)
+        if init_rot.shape != (F, S, 3, 3) or not np.isfinite(init_rot).all():
+            raise ValueError(f"init_rot must be finite, ({F}, {S}, 3, 3)")
+        R = _project_so3(init_rot[:, tree.perm])
+    if init_root is None:
+        p = _root_from_rotations(model, R, y, w)
+    else:
+        p = np.array(init_root, dtype=float)
+        if p.shape != (F, 3) or not np.isfinite(p).all():
+            raise ValueError(f"init_root must be finite, ({F}, 3)")
+
+    # length scale for the convergence test: the skeleton's extent
+    pts = np.concatenate([model.origin, model.origin[seg] + model.local])
+    scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
+
+    R_prior_T = np.swapaxes(R_prior, -1, -2)
+    G, L, r, cost = model.residual(p, R, y, w)
+    e = _log(R @ R_prior_T)
+    cost = cost + pw * np.einsum("fsi,fsi->f", e, e)
+    lam = np.full(F, float(damping))
+    converged = np.zeros(F, dtype=bool)
+    N = S + 1
+    floor = 1e-9 * max(scale, 1.0) ** 2  # keeps every 3x3 block invertible
+    n_iter = 0
+    for _ in range(int(iterations)):
+        act = np.flatnonzero(~converged)
+        if act.size == 0:
+            break
+        n_iter += 1
+        wa, ya = w[act], y[act]
+        H, g = model.normal_equations(G[act], L[act], r[act], wa, e[act], pw)
+        diag = H[:, tree.q_diag]  # (A, N, 3, 3)
+        dd = np.einsum("fnii->fni", diag)
+        H[:, tree.q_diag] += (lam[act, None, None] * dd + floor)[..., None] * np.eye(3)
+        x = model.solve(H, g)
+        dp = -x[:, 0]
+        dr = -x[:, 1:]
+        p_new = p[act] + dp
+        R_new = _exp(dr) @ R[act]
+        G2, L2, r2, c2 = model.residual(p_new, R_new, ya, wa)
+        e2 = _log(R_new @ R_prior_T[act])
+        c2 = c2 + pw * np.einsum("fsi,fsi->f", e2, e2)
+        ok = c2 <= cost[act] * (1 + 1e-12) + 1e-300
+        step = np.maximum(np.abs(dp).max(1), scale * np.abs(dr).max((1, 2)))
+        acc = act[ok]
+        p[acc], R[acc], G[acc], L[acc], r[acc], e[acc], cost[acc] = (
+            p_new[ok], R_new[ok], G2[ok], L2[ok], r2[ok], e2[ok], c2[ok]
+        )
+        lam[act] = np.where(ok, np.maximum(lam[act] * 0.3, 1e-12), lam[act] * 10)
+        converged[act] = step <= tol
+
+    res = np.full((F, M), np.nan)
+    dist = np.linalg.norm(r, axis=1)
+    res[:, used] = np.where(seen, dist, np.nan)
+    rot = np.empty_like(R)
+    rot[:, tree.perm] = R
+    return IKResult(root_pos=p, rot=rot, residual=res, n_iter=n_iter, converged=converged)

@@ -1,0 +1,315 @@
+"""Marker-trajectory bases (MTB): a joint as a fixed affine combination of markers.
+
+Hang, Lasenby & Li 2015, §II-A: if a rigid segment carries four non-coplanar
+points ``r_1..r_4``, every point fixed on the segment (a joint in particular)
+has the trajectory
+
+    t_c = lambda_1 t_1 + lambda_2 t_2 + lambda_3 t_3 + (1 - sum lambda) t_4      (6)
+
+with three constant ``lambda``; three non-collinear markers are completed by
+the auxiliary marker ``r_+ = r_3 + (r_1 - r_3) x (r_2 - r_3)`` (9). The joint
+between segments a and b is then found by minimising Kirk's cost Q over the
+three ``lambda`` only.
+
+This module builds the basis (:func:`mtb_basis`) and fits the joint
+(:func:`mtb_joint`):
+
+Basis
+    All N >= 3 visible points of the group are used, not just four: the basis
+    points are the centroid ``o`` and ``o + s a_k`` where ``a_1, a_2`` are the
+    group's two in-plane principal directions written as *fixed linear
+    combinations* of the markers (least-squares weights from a reference
+    frame) and ``a_3 = a_1 x a_2`` is Hang's auxiliary cross-product marker (9),
+    ``s`` the group's rms spread. For a rigid group ``[a_1 a_2 a_3]`` is exactly
+    the group's rotation times a constant matrix, so (6) holds exactly; for
+    N = 3 the affine family is the same as Hang's (9), for N = 4
+    non-coplanar the same as the four markers', and for N > 4 the extra markers
+    average the noise. The basis is well conditioned (orthonormal axes of the
+    group's own size) even for nearly coplanar 4-marker groups. Frames where a
+    marker is missing use the visible ones (at least 3 non-collinear), with
+    weights per visibility pattern that reproduce the same basis points.
+Joint
+    A linear least-squares start that is exact for noise-free data: with
+    ``c_f = o_f + E_f lambda`` and ``E_f^T E_f`` constant for a rigid basis,
+    ``|c_f - m_f|^2 = const`` becomes ``2 (E_f^T (o_f - m_f)) . lambda - t_m =
+    -|o_f - m_f|^2``, linear in ``lambda`` and one constant ``t_m`` per point
+    (eliminated by centring over frames). Then Levenberg-Marquardt on Q
+    itself with the analytic Jacobian (radii eliminated in closed form).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .jmv import JointFit, _as_points, _cost_terms, _stack
+
+__all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
+
+#: Default relative tolerance: a group whose second principal spread is below
+#: this fraction of the first is collinear (a 'special' group).
+COLLINEAR_TOL = 1e-2
+
+
+@dataclass(frozen=True, eq=False)
+class Basis:
+    """A marker-trajectory basis of one group. Falsy when none exists.
+
+    points : (F, 4, 3) ndarray
+        Basis trajectories (origin, then three axis tips); NaN in frames with
+        fewer than 3 non-collinear visible points. All NaN when not ``ok``.
+    ok : bool
+        Whether the group has 3 non-collinear points (seen together at least once).
+    reason : str
+        Why not ("" when ok).
+    special : bool
+        All points collinear (Hang's 'special group'; needs a solved joint).
+    pair : (2,) int ndarray or None
+        Special group: its two characteristic points (farthest apart).
+    ratios : (2,) ndarray
+        Median over frames of the group's principal spreads ``s2/s1, s3/s1``
+        (NaN when undefined). ``s2/s1 < tol``: collinear; ``s3/s1 < tol``: coplanar.
+    coplanar : bool
+        All points in a plane (the third axis is then the auxiliary marker alone).
+    coverage : float
+        Fraction of frames with a basis.
+    """
+
+    points: np.ndarray
+    ok: bool
+    reason: str = ""
+    special: bool = False
+    pair: np.ndarray | None = None
+    ratios: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    coplanar: bool = False
+    coverage: float = 0.0
+
+    def __bool__(self) -> bool:
+        return bool(self.ok)
+
+
+def _frame_coeffs(Xref: np.ndarray, vmask: np.ndarray, axes: np.ndarray, s: float, tol: float):
+    """Weights rebuilding the full basis from the visible subset ``vmask`` of a reference shape.
+
+    Returns (G (nv, 2), beta (4, 3)) so that, with o_V = mean of visible points,
+    b_1, b_2 = sum_j (P_j - o_V) G_j and b_3 = b_1 x b_2, the basis points are
+    o_V + [b1 b2 b3] beta[0] and that plus [b1 b2 b3] beta[k] (k = 1..3); or None
+    when the visible subset is collinear.
+    """
+    XV = Xref[vmask]
+    cV = XV.mean(0)
+    Y0 = XV - cV
+    _, sv, Wt = np.linalg.svd(Y0, full_matrices=False)
+    if sv.size < 2 or sv[0] <= 0 or sv[1] < tol * sv[0]:
+        return None
+    w1, w2 = Wt[0], Wt[1]
+    W = np.stack([w1, w2, np.cross(w1, w2)], axis=1)  # columns
+    Y = Y0 @ W[:, :2]
+    G = Y @ np.linalg.inv(Y.T @ Y)  # (nv, 2)
+    beta = np.empty((4, 3))
+    beta[0] = -W.T @ cV  # full centroid sits at the reference origin
+    for k in range(3):
+        beta[k + 1] = s * (W.T @ axes[:, k])
+    return G, beta
+
+
+def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25) -> Basis:
+    """Build the marker-trajectory basis of a group of points rigid together.
+
+    Parameters
+    ----------
+    markers : (F, N, 3) ndarray
+        The group's markers (and, for solvability propagation, its solved
+        joints); NaN where not seen.
+    tol : float
+        Relative collinearity tolerance (see :data:`COLLINEAR_TOL`).
+    n_ref : int
+        Number of frames (all points seen) sampled for the shape checks.
+
+    Returns
+    -------
+    Basis
+        Falsy with a reason when N < 3, no frame sees all points, or the
+        points are collinear (``special=True``, ``pair`` set).
+    """
+    P = _as_points(markers, "markers")
+    F, N, _ = P.shape
+    empty = np.full((F, 4, 3), np.nan)
+    if N < 3:
+        return Basis(empty, False, f"{N} point(s): a basis needs 3 non-collinear points")
+    vis = np.isfinite(P).all(-1)
+    full = np.flatnonzero(vis.all(1))
+    if full.size == 0:
+        return Basis(empty, False, f"no frame sees all {N} points of the group together")
+    idx = full[np.unique(np.linspace(0, full.size - 1, min(n_ref, full.size)).round().astype(int))]
+    X = P[idx] - P[idx].mean(1, keepdims=True)
+    sv = np.linalg.svd(X, compute_uv=False)  # (K, 3)
+    s1 = np.where(sv[:, 0] > 0, sv[:, 0], np.nan)
+    if not np.isfinite(s1).any():
+        return Basis(empty, False, "all points coincide", special=True)
+    r2 = np.nanmedian(sv[:, 1] / s1)
+    r3 = np.nanmedian(sv[:, 2] / s1)
+    ratios = np.array([r2, r3])
+    fref = int(idx[int(np.nanargmin(np.abs(sv[:, 1] / s1 - r2)))])
+    Xref = P[fref] - P[fref].mean(0)
+    if not r2 >= tol:
+        dd = np.linalg.norm(Xref[:, None] - Xref[None], axis=-1)
+        i, j = np.unravel_index(int(np.argmax(dd)), dd.shape)
+        return Basis(empty, False, f"collinear points (s2/s1 = {r2:.2g} < {tol:g}): special group",
+                     special=True, pair=np.array(sorted((int(i), int(j)))), ratios=ratios)
+    _, svr, Vt = np.linalg.svd(Xref, full_matrices=False)
+    axes = np.stack([Vt[0], Vt[1], np.cross(Vt[0], Vt[1])], axis=1)
+    s = float(np.sqrt((Xref**2).sum(1).mean()))
+
+    out = np.full((F, 4, 3), np.nan)
+    pats, inv = np.unique(vis, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    for p, vmask in enumerate(pats):
+        if vmask.sum() < 3:
+            continue
+        co = _frame_coeffs(Xref, vmask, axes, s, tol)
+        if co is None:
+            continue
+        G, beta = co
+        fr = np.flatnonzero(inv == p)
+        PV = P[fr][:, vmask]  # (f, nv, 3)
+        oV = PV.mean(1)
+        b12 = np.einsum("fji,jk->fik", PV - oV[:, None], G)  # (f, 3, 2)
+        b3 = np.cross(b12[:, :, 0], b12[:, :, 1])
+        Bf = np.concatenate([b12, b3[:, :, None]], axis=2)  # (f, 3, 3), columns b1 b2 b3
+        origin = oV + Bf @ beta[0]
+        out[fr, 0] = origin
+        out[fr, 1:] = origin[:, None, :] + np.einsum("fik,jk->fji", Bf, beta[1:])
+    cov = float(np.isfinite(out).all((1, 2)).mean()) if F else 0.0
+    return Basis(out, True, "", False, None, ratios, bool(r3 < tol), cov)
+
+
+# --------------------------------------------------------------------------- the joint
+
+
+def _linear_start(o: np.ndarray, E: np.ndarray, pts: np.ndarray, valid: np.ndarray):
+    """Closed-form lambda from distance constancy (exact for noise-free rigid data).
+
+    Returns (lambda (3,), singular values (3,)).
+    """
+    v = np.where(valid[..., None], o[:, None, :] - pts, 0.0)  # (F, M, 3)
+    x = 2.0 * np.einsum("fik,fmi->fmk", E, v)  # E^T v
+    y = -np.einsum("fmi,fmi->fm", v, v)
+    n = valid.sum(0)
+    w = np.where(n > 0, 1.0 / np.maximum(n, 1), 0.0)
+    wv = np.where(valid, w, 0.0)
+    xbar = np.einsum("fm,fmk->mk", wv, x)
+    ybar = (wv * y).sum(0)
+    sw = np.sqrt(wv)
+    X = (sw[..., None] * (x - xbar)).reshape(-1, 3)
+    Y = (sw * (y - ybar)).reshape(-1)
+    lam, _, _, svals = np.linalg.lstsq(X, Y, rcond=None)
+    return lam, svals
+
+
+def mtb_joint(
+    basis_markers: ArrayLike | Basis,
+    markers_a: ArrayLike,
+    markers_b: ArrayLike,
+    *,
+    alpha: float = 0.0,
+    max_iter: int = 50,
+    tol: float = 1e-12,
+    rank_tol: float = 1e-8,
+) -> JointFit:
+    """Joint between two segments as an affine combination of a basis (Hang (6)-(8)).
+
+    Parameters
+    ----------
+    basis_markers : (F, 4, 3) ndarray or Basis
+        Four trajectories rigid with one of the two segments (origin first),
+        such as :attr:`Basis.points` of either group; NaN frames give NaN joints.
+    markers_a, markers_b : (F, Na, 3), (F, Nb, 3) ndarray
+        All points of the two segments that enter Kirk's cost Q (markers,
+        and solved joints when propagating); NaN where not seen.
+    alpha : float
+        Mean-distance penalty of Q (length units).
+    max_iter : int
+        Levenberg-Marquardt iteration limit.
+    tol : float
+        Relative decrease of Q below which the refinement stops.
+    rank_tol : float
+        The joint counts as undetermined (``ok`` False) when the linear start's
+        smallest singular value is below ``rank_tol`` times the largest, e.g.
+        a hinge moved about one axis only (and ``alpha`` is 0).
+
+    Returns
+    -------
+    JointFit
+        ``params`` holds the three lambda of the basis (origin + axes form).
+    """
+    B = basis_markers.points if isinstance(basis_markers, Basis) else np.asarray(basis_markers, dtype=float)
+    pts = _stack(markers_a, markers_b)
+    F, M, _ = pts.shape
+    if B.shape != (F, 4, 3):
+        raise ValueError(f"basis_markers must be ({F}, 4, 3), got {B.shape}")
+    alpha = float(alpha)
+    nan = np.full((F, 3), np.nan)
+    bok = np.isfinite(B).all((1, 2))
+    valid = np.isfinite(pts).all(-1) & bok[:, None]
+    if not valid.any():
+        return JointFit(nan, np.inf, 0, False, "no frame sees the basis together with a marker")
+    o = B[:, 0]
+    E = np.swapaxes(B[:, 1:] - o[:, None, :], 1, 2)  # (F, 3, 3), columns = axes
+    o = np.where(bok[:, None], o, 0.0)
+    E = np.where(bok[:, None, None], E, 0.0)
+
+    lam, svals = _linear_start(o, E, pts, valid)
+    ranked = svals.size == 3 and svals[0] > 0 and svals[2] >= rank_tol * svals[0]
+    scale = float(np.sqrt(np.einsum("fij,fij->f", E, E)[bok].mean() / 3.0))  # basis size
+
+    c = o + E @ lam
+    q, d, diff, _, dbar, used = _cost_terms(c, pts, valid, alpha)
+    n = valid.sum(0)
+    k = max(int(used.sum()), 1)
+    w = np.where(used, 1.0 / (k * np.maximum(n, 1)), 0.0)
+    wv = np.where(valid, w, 0.0)
+    const = alpha * alpha / 4.0
+    mu = 1e-4
+    it = 0
+    converged = q - const <= 1e-30 * max(scale, 1.0) ** 2 * max(np.abs(lam).max(), 1.0) ** 2
+    while not converged and it < max_iter:
+        it += 1
+        u = diff / np.maximum(d, 1e-300)[..., None]
+        ju = np.einsum("fik,fmi->fmk", E, u)  # (F, M, 3)
+        r = np.where(valid, d - (dbar - alpha / 2.0), 0.0)
+        H = np.einsum("fm,fmi,fmj->ij", wv, ju, ju)
+        h = np.einsum("fm,fmi->mi", wv, ju)
+        Dm = wv.sum(0)
+        S = H - np.einsum("mi,mj,m->ij", h, h, np.where(used, 1.0 / np.maximum(Dm, 1e-300), 0.0))
+        g = np.einsum("fm,fm,fmi->i", wv, r, ju)
+        diagS = np.maximum(np.diag(S), 1e-30 * max(np.trace(S), 1e-300))
+        while True:
+            try:
+                step = np.linalg.solve(S + mu * np.diag(diagS), -g)
+            except np.linalg.LinAlgError:
+                step = np.linalg.lstsq(S + mu * np.diag(diagS), -g, rcond=None)[0]
+            lam_new = lam + step
+            c_new = o + E @ lam_new
+            q_new, d_new, diff_new, _, dbar_new, _ = _cost_terms(c_new, pts, valid, alpha)
+            if np.isfinite(q_new) and q_new <= q:
+                dq = q - q_new
+                lam, c, q, d, diff, dbar = lam_new, c_new, q_new, d_new, diff_new, dbar_new
+                mu = max(mu / 5.0, 1e-15)
+                if dq <= tol * max(q - const, 1e-300) or np.abs(step).max() <= tol * max(np.abs(lam).max(), 1.0):
+                    converged = True
+                break
+            mu *= 10.0
+            if mu > 1e16:
+                converged = True  # no descent left: at a minimum to rounding
+                break
+    centre = np.where(bok[:, None], c, np.nan)
+    radii = np.where(used, dbar, np.nan)
+    if not ranked and alpha == 0.0:
+        return JointFit(centre, q, it, False,
+                        "the motion does not determine the joint (rank-deficient; e.g. a hinge): "
+                        "minimum-norm solution returned", lam, radii)
+    if not converged:
+        return JointFit(centre, q, it, False, "iteration limit reached before convergence", lam, radii)
+    return JointFit(centre, q, it, True, "", lam, radii)

@@ -1,0 +1,395 @@
+"""Rotation kernels: Euler angles the way BVH means them, rotation vectors,
+quaternions, interpolation of gaps and projection onto SO(3).
+
+All functions are vectorised over any number of leading axes and do no I/O.
+
+Euler convention
+----------------
+An ``order`` is three distinct letters of ``"XYZ"`` (Tait-Bryan angles; BVH
+has no proper-Euler orders). ``angles[..., k]`` is the angle in degrees about
+axis ``order[k]`` and the rotation is *intrinsic*, the product in channel order::
+
+    R = R_{order[0]}(angles[..., 0]) @ R_{order[1]}(angles[..., 1]) @ R_{order[2]}(angles[..., 2])
+
+so the BVH channels ``Zrotation Xrotation Yrotation`` mean ``Rz(a) @ Rx(b) @ Ry(c)``
+(column vectors, right-handed, counter-clockwise positive). This is what
+bvhio's forward kinematics does (``Euler.toQuatFrom(..., extrinsic=False)``);
+``tests/test_bvh.py`` checks it against bvhio.
+
+Every rotation has two Euler solutions with the same order::
+
+    (a, b, c)  and  (a + 180, 180 - b, c + 180)
+
+(the same form for all six orders, because ``Ri(180) Rj(180 - b) Rk(180) = Rj(b)``
+for any right-handed axis triple), plus multiples of 360 on each angle. At
+gimbal lock (``cos b = 0``) only ``a + s sin(b) c`` is determined, where ``s``
+is +1 for the cyclic orders XYZ, YZX, ZXY and -1 for the others.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "ORDERS",
+    "euler_to_matrix",
+    "matrix_to_euler",
+    "unwrap_euler",
+    "rotvec_to_matrix",
+    "matrix_to_rotvec",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "slerp_fill",
+    "project_to_so3",
+]
+
+#: The six Tait-Bryan orders a BVH rotation block can have.
+ORDERS: tuple[str, ...] = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+
+#: cos(middle angle) below which a decomposition counts as gimbal-locked.
+_GIMBAL_TOL = 1e-9
+
+
+def _parse_order(order: str) -> tuple[int, int, int, float]:
+    """Axis indices (i, j, k) of ``order`` and its parity s (+1 cyclic, -1 not)."""
+    up = order.upper() if isinstance(order, str) else ""
+    if len(up) != 3 or sorted(up) != ["X", "Y", "Z"]:
+        raise ValueError(f"rotation order must be a permutation of 'XYZ', got {order!r}")
+    i, j, k = ("XYZ".index(c) for c in up)
+    s = 1.0 if (j - i) % 3 == 1 else -1.0
+    return i, j, k, s
+
+
+def _wrap(deg: np.ndarray) -> np.ndarray:
+    """Angles wrapped into [-180, 180) (floor is ~7x faster than % on floats)."""
+    return deg - 360.0 * np.floor((deg + 180.0) / 360.0)
+
+
+def euler_to_matrix(angles: np.ndarray, order: str = "ZXY") -> np.ndarray:
+    """Rotation matrices of intrinsic Euler angles (BVH convention).
+
+    Parameters
+    ----------
+    angles : (..., 3) array_like
+        Degrees, ``angles[..., k]`` about axis ``order[k]``.
+    order : str
+        A permutation of ``"XYZ"`` (case-insensitive): the channel order.
+
+    Returns
+    -------
+    R : (..., 3, 3) ndarray
+        ``R_{order[0]}(a0) @ R_{order[1]}(a1) @ R_{order[2]}(a2)``.
+    """
+    i, j, k, s = _parse_order(order)
+    rad = np.radians(np.asarray(angles, dtype=np.float64))
+    if rad.shape[-1:] != (3,):
+        raise ValueError(f"angles must have shape (..., 3), got {rad.shape}")
+    # With P = [e_i e_j e_k], R = P Rxyz(s a, s b, s c) P^T (a reflection P turns
+    # the angles round), so R[idx[p], idx[q]] = Rxyz[p, q]. Written out entry by
+    # entry: 4x faster than two batched 3x3 matmuls, 6x faster than scipy.
+    ca, cb, cc = np.cos(rad[..., 0]), np.cos(rad[..., 1]), np.cos(rad[..., 2])
+    sa, sb, sc = (s * np.sin(rad[..., 0]), s * np.sin(rad[..., 1]), s * np.sin(rad[..., 2]))
+    m = (
+        (cb * cc, -cb * sc, sb),
+        (ca * sc + sa * sb * cc, ca * cc - sa * sb * sc, -sa * cb),
+        (sa * sc - ca * sb * cc, sa * cc + ca * sb * sc, ca * cb),
+    )
+    idx = (i, j, k)
+    R = np.empty(rad.shape[:-1] + (3, 3))
+    for p in range(3):
+        for q in range(3):
+            R[..., idx[p], idx[q]] = m[p][q]
+    return R
+
+
+def matrix_to_euler(R: np.ndarray, order: str = "ZXY") -> np.ndarray:
+    """Intrinsic Euler angles (BVH convention) of rotation matrices.
+
+    The middle angle is in [-90, 90] and the others in [-180, 180]. The first
+    angle is found from the matrix's last column and the third from the
+    first one after removing it (Mike Day's method), so the result reproduces
+    ``R`` even at and near gimbal lock; at exact lock (``cos b < 1e-9``) the
+    first angle is set to 0 and the third carries the whole rotation. Never NaN
+    for finite input.
+
+    Parameters
+    ----------
+    R : (..., 3, 3) array_like
+        Rotation matrices.
+    order : str
+        A permutation of ``"XYZ"``: the channel order.
+
+    Returns
+    -------
+    angles : (..., 3) ndarray
+        Degrees, in the order of ``order``'s letters; ``euler_to_matrix(angles, order) == R``.
+    """
+    i, j, k, s = _parse_order(order)
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {R.shape}")
+    # Column k of R = cos b * Ri(a) e_k + s sin b e_i, so
+    # R[j,k] = -s cos b sin a,  R[k,k] = cos b cos a,  R[i,k] = s sin b.
+    y, x = -s * R[..., j, k], R[..., k, k]
+    cb = np.hypot(y, x)
+    b = np.arctan2(s * R[..., i, k], cb)
+    locked = cb < _GIMBAL_TOL
+    a = np.where(locked, 0.0, np.arctan2(y, x))
+    # Ri(a)^T R = Rj(b) Rk(c), whose row j is (Rk(c) row j): cos c e_j + s sin c e_i.
+    ca, sa = np.cos(a), np.sin(a)
+    m_ji = ca * R[..., j, i] + s * sa * R[..., k, i]
+    m_jj = ca * R[..., j, j] + s * sa * R[..., k, j]
+    c = np.arctan2(s * m_ji, m_jj)
+    return np.degrees(np.stack([a, b, c], axis=-1))
+
+
+def unwrap_euler(angles: np.ndarray, order: str = "ZXY") -> np.ndarray:
+    """Make Euler angles continuous frame to frame (axis 0 is time).
+
+    Each frame keeps its rotation; only the representation changes. Method,
+    all in a few vector operations over frames (no per-frame Python loop):
+
+    1. Canonicalise every frame: middle angle in [-90, 90], others wrapped.
+    2. Gimbal lock: at frames with ``cos b < 1e-9`` only ``a + s sin(b) c`` is
+       determined; carry ``a`` forward from the last unlocked frame (a running
+       maximum of indices) and let ``c`` absorb the difference.
+    3. Branch choice. With ``x_f`` the canonical solution of frame f and
+       ``y_f = (a + 180, 180 - b, c + 180)`` the other one, the map x -> y is an
+       isometry of the wrapped (mod 360) angle distance ``D``, so
+       ``D(x_{f-1}, x_f) = D(y_{f-1}, y_f)`` and ``D(x_{f-1}, y_f) = D(y_{f-1}, x_f)``.
+       Whether frame f should be on the other branch than frame f-1 therefore
+       does not depend on the branch frame f-1 ended up on:
+       ``flip_f = D(x_{f-1}, y_f) < D(x_{f-1}, x_f)``, and the branch of frame f
+       is the parity of ``cumsum(flip)``. This is the exact minimiser of every
+       frame-to-frame jump, not a greedy approximation. Of the two global
+       parities the one that keeps more frames canonical is used.
+    4. Multiples of 360 per channel, as ``np.unwrap(period=360)`` but as one
+       ``cumsum`` of rounded steps (the values are wrapped, so every step is a
+       jump of less than 360 plus a whole number of turns). The first frame
+       is in [-180, 180).
+
+    Parameters
+    ----------
+    angles : (F, ..., 3) array_like
+        Degrees, any representation (e.g. from :func:`matrix_to_euler`); every
+        trailing index (e.g. joints) is unwrapped independently.
+    order : str
+        The channel order the angles are in.
+
+    Returns
+    -------
+    unwrapped : (F, ..., 3) ndarray
+        Same rotations, continuous in time.
+
+    Raises
+    ------
+    ValueError
+        For non-finite angles (fill gaps first) or a bad shape or order.
+    """
+    *_, s = _parse_order(order)
+    x = np.array(angles, dtype=np.float64)  # a copy
+    if x.ndim < 2 or x.shape[-1] != 3:
+        raise ValueError(f"angles must have shape (F, ..., 3), got {x.shape}")
+    if not np.isfinite(x).all():
+        raise ValueError("angles must be finite; fill gaps before unwrapping")
+    n = x.shape[0]
+    if n == 0:
+        return x
+
+    # 1. canonical: b in [-90, 90]
+    x = _wrap(x)
+    flip = np.abs(x[..., 1]) > 90.0
+    x[..., 0] += np.where(flip, 180.0, 0.0)
+    x[..., 1] = np.where(flip, 180.0 - x[..., 1], x[..., 1])
+    x[..., 2] += np.where(flip, 180.0, 0.0)
+    x = _wrap(x)
+
+    # 2. gimbal lock: forward-fill a, keep a + s*sin(b)*c
+    locked = np.cos(np.radians(x[..., 1])) < _GIMBAL_TOL
+    if locked[1:].any():
+        frame = np.arange(n).reshape((n,) + (1,) * (locked.ndim - 1))
+        src = np.maximum.accumulate(np.where(locked, 0, frame), axis=0)
+        a_new = np.take_along_axis(x[..., 0], src, axis=0)
+        a_new = np.where(locked, a_new, x[..., 0])
+        x[..., 2] -= s * np.sign(x[..., 1]) * (a_new - x[..., 0])
+        x[..., 0] = a_new
+        x = _wrap(x)
+
+    # 3. branch choice as a parity scan
+    y = _wrap(x + np.array([180.0, 0.0, 180.0]))
+    y[..., 1] = _wrap(180.0 - x[..., 1])
+    prev = x[:-1]
+    d_same = np.sum(_wrap(x[1:] - prev) ** 2, axis=-1)
+    d_flip = np.sum(_wrap(y[1:] - prev) ** 2, axis=-1)
+    step = d_flip < d_same
+    branch = np.concatenate([np.zeros_like(step[:1]), np.cumsum(step, axis=0) % 2 == 1], axis=0)
+    branch ^= branch.mean(axis=0) > 0.5
+    out = np.where(branch[..., None], y, x)
+
+    # 4. multiples of 360
+    turns = np.rint(np.diff(out, axis=0) / 360.0)
+    out[1:] -= 360.0 * np.cumsum(turns, axis=0)
+    return out
+
+
+def _flat_mats(R: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"expected shape (..., 3, 3), got {R.shape}")
+    return R.reshape(-1, 3, 3), R.shape[:-2]
+
+
+def _flat_vecs(v: np.ndarray, n: int) -> tuple[np.ndarray, tuple[int, ...]]:
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (n,):
+        raise ValueError(f"expected shape (..., {n}), got {v.shape}")
+    return v.reshape(-1, n), v.shape[:-1]
+
+
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices of rotation vectors.
+
+    Parameters
+    ----------
+    v : (..., 3) array_like
+        Axis times angle in radians.
+
+    Returns
+    -------
+    R : (..., 3, 3) ndarray
+    """
+    flat, lead = _flat_vecs(v, 3)
+    if flat.shape[0] == 0:
+        return np.zeros(lead + (3, 3))
+    return Rotation.from_rotvec(flat).as_matrix().reshape(lead + (3, 3))
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (axis times angle in radians, angle in [0, pi]) of rotation matrices.
+
+    Parameters
+    ----------
+    R : (..., 3, 3) array_like
+        Rotation matrices (nearly orthonormal input is projected first).
+
+    Returns
+    -------
+    v : (..., 3) ndarray
+    """
+    flat, lead = _flat_mats(R)
+    if flat.shape[0] == 0:
+        return np.zeros(lead + (3,))
+    return Rotation.from_matrix(flat).as_rotvec().reshape(lead + (3,))
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of quaternions (w, x, y, z); they need not be unit.
+
+    Parameters
+    ----------
+    q : (..., 4) array_like
+        Scalar first.
+
+    Returns
+    -------
+    R : (..., 3, 3) ndarray
+    """
+    flat, lead = _flat_vecs(q, 4)
+    if flat.shape[0] == 0:
+        return np.zeros(lead + (3, 3))
+    return Rotation.from_quat(flat, scalar_first=True).as_matrix().reshape(lead + (3, 3))
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices, with w >= 0.
+
+    Parameters
+    ----------
+    R : (..., 3, 3) array_like
+
+    Returns
+    -------
+    q : (..., 4) ndarray
+        Scalar first, the ``w >= 0`` hemisphere.
+    """
+    flat, lead = _flat_mats(R)
+    if flat.shape[0] == 0:
+        return np.zeros(lead + (4,))
+    q = Rotation.from_matrix(flat).as_quat(canonical=True, scalar_first=True)
+    return q.reshape(lead + (4,))
+
+
+def slerp_fill(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill the invalid frames of a rotation track by slerp between valid ones.
+
+    A frame between two valid frames gets the geodesic interpolation between
+    the nearest valid frame before and after it (the shorter way round);
+    frames before the first or after the last valid frame hold that frame.
+    Valid frames are returned unchanged; what invalid frames hold (NaN, say)
+    is ignored.
+
+    Parameters
+    ----------
+    R : (F, 3, 3) array_like
+        Rotations; only the valid ones are read.
+    valid : (F,) array_like of bool
+        Which frames to keep.
+
+    Returns
+    -------
+    filled : (F, 3, 3) ndarray
+
+    Raises
+    ------
+    ValueError
+        When no frame is valid, or for mismatched shapes.
+    """
+    R = np.array(R, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if R.ndim != 3 or R.shape[1:] != (3, 3) or valid.shape != R.shape[:1]:
+        raise ValueError(f"need R (F, 3, 3) and valid (F,), got {R.shape} and {valid.shape}")
+    n = R.shape[0]
+    if valid.all():
+        return R
+    if not valid.any():
+        raise ValueError("no valid frame to fill from")
+    idx = np.arange(n)
+    prev = np.maximum.accumulate(np.where(valid, idx, -1))
+    nxt = np.minimum.accumulate(np.where(valid, idx, n)[::-1])[::-1]
+    gap = ~valid
+    inner = gap & (prev >= 0) & (nxt < n)
+    R[gap & (prev < 0)] = R[nxt[gap & (prev < 0)]]
+    R[gap & (nxt >= n)] = R[prev[gap & (nxt >= n)]]
+    if inner.any():
+        p, q = prev[inner], nxt[inner]
+        t = (idx[inner] - p) / (q - p)
+        Rp = R[p]
+        rel = matrix_to_rotvec(np.swapaxes(Rp, -1, -2) @ R[q])
+        R[inner] = Rp @ rotvec_to_matrix(t[:, None] * rel)
+    return R
+
+
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation (Frobenius norm) to each 3x3 matrix, by SVD.
+
+    ``U diag(1, 1, det(U V^T)) V^T`` for ``M = U S V^T``: a proper rotation
+    even when ``M`` is a reflection. Non-finite matrices give NaN.
+
+    Parameters
+    ----------
+    M : (..., 3, 3) array_like
+
+    Returns
+    -------
+    R : (..., 3, 3) ndarray
+    """
+    flat, lead = _flat_mats(M)
+    out = np.full(flat.shape, np.nan)
+    ok = np.isfinite(flat).all(axis=(1, 2))
+    if ok.any():
+        U, _, Vt = np.linalg.svd(flat[ok])
+        d = np.sign(np.linalg.det(U @ Vt))
+        d[d == 0] = 1.0
+        U[:, :, 2] *= d[:, None]
+        out[ok] = U @ Vt
+    return out.reshape(lead + (3, 3))

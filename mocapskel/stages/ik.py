@@ -1,0 +1,115 @@
+"""IK: per-frame segment rotations and root translation that best fit the markers.
+
+Started from per-segment Horn/Kabsch fits of markers and joint centres
+(gaps bridged by slerp), then refined jointly for the whole skeleton by a
+batched Gauss–Newton over all frames at once. Segments with 1–2 markers are
+held by their joints; gaps are filled by the skeleton.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..artifacts import Motion, Skeleton, markers_of
+from ..errors import DataError
+from ..solvers.ik import solve_ik
+from ..solvers.rigid import kabsch
+from ..solvers.rotations import slerp_fill
+
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Params:
+    iterations: int = 10
+    use_joint_centres: bool = True
+    """Start from Kabsch fits that include the estimated joint centres."""
+
+
+def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-segment Kabsch start: (rot (F, S, 3, 3), root_pos (F, 3)), gaps slerp-filled.
+
+    points : (F, M, 3) observed markers; centres : (F, E, 3) joint centres or None.
+    """
+    F = points.shape[0]
+    S = len(skel.names)
+    rot = np.full((F, S, 3, 3), np.nan)
+    root = int(np.flatnonzero(skel.parent < 0)[0])
+    root_pos = np.full((F, 3), np.nan)
+    edges = _edges(skel)
+    for s in range(S):
+        mids = np.flatnonzero(skel.marker_segment == s)
+        ref = [skel.origin[s] + skel.marker_local[mids]]
+        obs = [points[:, mids]]
+        if centres is not None:
+            eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
+            ref.append(skel.origin[edges[eids, 1]])
+            obs.append(centres[:, eids])
+        R, t, _ = kabsch(np.concatenate(ref), np.concatenate(obs, axis=1))
+        ok = np.isfinite(R).all(axis=(1, 2))
+        if ok.any():
+            rot[:, s] = slerp_fill(np.where(ok[:, None, None], R, np.eye(3)), ok)
+        else:
+            rot[:, s] = np.eye(3)
+        if s == root:
+            p = np.einsum("fij,j->fi", R, skel.origin[s]) + t
+            if ok.any():
+                fr = np.flatnonzero(ok)
+                root_pos = np.stack([np.interp(np.arange(F), fr, p[fr, i]) for i in range(3)], axis=1)
+    if not np.isfinite(root_pos).all():
+        # fall back to the mean of the root's markers, offset as at rest
+        mids = np.flatnonzero(skel.marker_segment == root)
+        c = np.nanmean(points[:, mids], axis=1) if mids.size else np.full((F, 3), np.nan)
+        c0 = np.mean(skel.origin[root] + skel.marker_local[mids], axis=0) if mids.size else skel.origin[root]
+        root_pos = c - c0 + skel.origin[root]
+        fr = np.flatnonzero(np.isfinite(root_pos).all(1))
+        if not fr.size:
+            raise DataError("the root segment is never seen — cannot place the skeleton", None)
+        root_pos = np.stack([np.interp(np.arange(F), fr, root_pos[fr, i]) for i in range(3)], axis=1)
+    return rot, root_pos
+
+
+def _edges(skel: Skeleton) -> np.ndarray:
+    kids = np.flatnonzero(skel.parent >= 0)
+    return np.stack([skel.parent[kids], kids], axis=1) if kids.size else np.zeros((0, 2), dtype=int)
+
+
+def solve(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10, rate: float = 0.0, source: str = "") -> Motion:
+    """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``)."""
+    if not np.isfinite(points).any():
+        raise DataError("no marker is seen in any frame", source or None)
+    rot0, root0 = initial_pose(skel, points, centres)
+    res = solve_ik(
+        skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points,
+        init_rot=rot0, init_root=root0, iterations=iterations,
+    )
+    resid = res.residual
+    info = {
+        "version": VERSION,
+        "rms_mm": float(np.sqrt(np.nanmean(resid**2))) if np.isfinite(resid).any() else None,
+        "rms_mm_per_segment": {},
+        "filled_fraction": float(1.0 - np.isfinite(resid).mean()) if resid.size else 0.0,
+    }
+    for s, name in enumerate(skel.names):
+        r = resid[:, skel.marker_segment == s]
+        info["rms_mm_per_segment"][name] = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else None
+    return Motion(skeleton=skel, root_pos=res.root_pos, rot=res.rot, residual=resid, rate=rate, source=source, info=info)
+
+
+def run(skel: Skeleton, params: Params = Params()) -> Motion:
+    """Solve every frame of the take the skeleton was fitted on."""
+    mk = markers_of(skel)
+    centres = skel.joints.centres if (params.use_joint_centres and skel.joints is not None) else None
+    # joint centres are per tree edge in the joints artifact's edge order; map to child segments
+    if centres is not None:
+        centres = _centres_by_edges(skel, centres)
+    return solve(skel, mk.points, centres, iterations=params.iterations, rate=mk.rate, source=mk.source)
+
+
+def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:
+    """Reorder joint-centre trajectories from the topology's edge order to ``_edges(skel)`` order."""
+    topo_edges = skel.joints.topology.edges
+    child_to_e = {int(b): e for e, (a, b) in enumerate(topo_edges)}
+    kids = np.flatnonzero(skel.parent >= 0)
+    return centres[:, [child_to_e[int(k)] for k in kids]]

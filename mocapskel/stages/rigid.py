@@ -1,0 +1,222 @@
+"""Rigid: fit a rigid skeleton to markers and joint centres (Kirk et al. 2005, §3.3).
+
+One segment at a time, the segment's markers and its joint centres are
+mutually aligned over all frames by Horn's absolute orientation (generalised
+Procrustes); the aligned clouds give constant marker and joint offsets, the
+bone lengths, and the rms residual (an estimate of the noise). The rest pose
+is the subject as seen at a reference frame, so offsets are the real skeleton.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..artifacts import Joints, Skeleton
+from ..errors import DataError
+from ..solvers.rigid import procrustes_shape
+
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Params:
+    rest_frame: int | None = None
+    """Frame whose pose is the rest pose; None: a well-visible frame near the start."""
+    rest_search: float = 0.25
+    """Fraction of the take (from the start) searched for the rest frame."""
+    iters: int = 5
+
+
+def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
+    """A frame near the start where every segment is best seen.
+
+    points : (F, M, 3); joints : (F, E, 3); group : (M,) segment per marker.
+    """
+    F = points.shape[0]
+    n = max(1, int(np.ceil(F * search)))
+    vis = np.isfinite(points[:n]).all(-1)  # (n, M)
+    per_seg = np.zeros((n, n_seg), dtype=int)
+    for s in range(n_seg):
+        per_seg[:, s] = vis[:, group == s].sum(1)
+    full = (per_seg >= np.minimum(3, np.bincount(group[group >= 0], minlength=n_seg))).sum(1)
+    jvis = np.isfinite(joints[:n]).all(-1).sum(1)
+    score = full * 10_000 + jvis * 100 + vis.sum(1)
+    return int(np.argmax(score))
+
+
+_TRAIL = re.compile(r"[\d_\-\s.]+$")
+
+
+def segment_names(labels_per_segment: list[list[str]]) -> list[str]:
+    """Names for segments from their markers' labels (common prefix), else generic."""
+    names = []
+    for i, labels in enumerate(labels_per_segment):
+        pre = _common_prefix(labels) if labels else ""
+        pre = _TRAIL.sub("", pre)
+        if len(labels) == 1:
+            pre = _TRAIL.sub("", labels[0])
+        if len(pre) < 2 or re.fullmatch(r"[A-Za-z]?\d*", pre) or re.fullmatch(r"M\d*|Marker|marker|U|Unlabeled", pre):
+            pre = f"seg{i:02d}"
+        names.append(pre)
+    from ..io.bvh import sanitize_names
+
+    return list(sanitize_names(names))
+
+
+def _common_prefix(labels: list[str]) -> str:
+    s1, s2 = min(labels), max(labels)
+    i = 0
+    while i < min(len(s1), len(s2)) and s1[i] == s2[i]:
+        i += 1
+    return s1[:i]
+
+
+def run(joints: Joints, params: Params = Params()) -> Skeleton:
+    """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s."""
+    topo = joints.topology
+    seg = topo.segments
+    mk = seg.markers
+    pts = mk.points
+    F, M, _ = pts.shape
+    S = seg.n_segments
+    edges = topo.edges
+    E = edges.shape[0]
+    parent = np.full(S, -1, dtype=int)
+    parent_edge = np.full(S, -1, dtype=int)
+    for e, (a, b) in enumerate(edges):
+        parent[b] = a
+        parent_edge[b] = e
+    order = _topological(parent, topo.root)
+
+    if params.rest_frame is None:
+        rest = choose_rest_frame(pts, joints.centres, seg.group, S, params.rest_search)
+    else:
+        rest = int(params.rest_frame)
+        if not 0 <= rest < F:
+            raise DataError(f"rest frame {rest} is outside the take's {F} frames", mk.source or None)
+
+    origin = np.full((S, 3), np.nan)
+    marker_local = np.full((M, 3), np.nan)
+    end_site = np.zeros((S, 3))
+    bone_length = np.full(S, np.nan)
+    noise = np.full(S, np.nan)
+    joint_in = {}  # (segment, edge) -> joint position in that segment's rest shape
+    shapes = {}
+    for s in range(S):
+        mids = seg.members(s)
+        eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
+        obs = np.concatenate([pts[:, mids], joints.centres[:, eids]], axis=1)
+        shape, R, t, rms = procrustes_shape(obs, ref_frame=rest, iters=params.iters)
+        if not np.isfinite(shape).all():
+            shape = _fallback_shape(obs, rest, shape)
+        if not np.isfinite(shape).all():
+            raise DataError(
+                f"segment {s} (markers {', '.join(mk.labels[i] for i in mids)}) is never seen well enough to fit",
+                mk.source or None,
+            )
+        noise[s] = float(np.sqrt(np.nanmean(rms**2))) if np.isfinite(rms).any() else np.nan
+        shapes[s] = (mids, shape[: mids.size])
+        for j, e in enumerate(eids):
+            joint_in[(s, e)] = shape[mids.size + j]
+
+    for s in order:
+        if parent[s] < 0:
+            own = [joint_in[(s, e)] for e in np.flatnonzero(edges[:, 0] == s)]
+            origin[s] = np.mean(own, axis=0)
+            o_shape = origin[s]
+        else:
+            e = parent_edge[s]
+            origin[s] = origin[parent[s]] + (joint_in[(parent[s], e)] - _shape_origin(parent[s], parent, parent_edge, joint_in, edges))
+            o_shape = joint_in[(s, e)]
+        mids, mshape = shapes[s]
+        marker_local[mids] = mshape - o_shape
+        kids = np.flatnonzero(edges[:, 0] == s)
+        if parent[s] < 0 and kids.size == 2:  # a root between two joints: the joint-to-joint length
+            bone_length[s] = float(np.linalg.norm(joint_in[(s, kids[0])] - joint_in[(s, kids[1])]))
+        elif kids.size and parent[s] >= 0:
+            bone_length[s] = float(np.mean([np.linalg.norm(joint_in[(s, e)] - o_shape) for e in kids]))
+        if kids.size == 0:
+            end_site[s] = _end_site(marker_local[mids])
+            bone_length[s] = float(np.linalg.norm(end_site[s]))
+
+    names = segment_names([[mk.labels[i] for i in seg.members(s)] for s in range(S)])
+    info = {"version": VERSION, "rest_frame": rest, "noise_mm": {names[s]: noise[s] for s in range(S)}}
+    return Skeleton(
+        names=tuple(names),
+        parent=parent,
+        origin=origin,
+        marker_segment=seg.group.copy(),
+        marker_local=marker_local,
+        end_site=end_site,
+        bone_length=bone_length,
+        noise=noise,
+        rest_frame=rest,
+        labels=mk.labels,
+        joints=joints,
+        info=info,
+    )
+
+
+def _shape_origin(s, parent, parent_edge, joint_in, edges) -> np.ndarray:
+    """A segment's origin in its own rest shape."""
+    if parent[s] < 0:
+        return np.mean([joint_in[(s, e)] for e in np.flatnonzero(edges[:, 0] == s)], axis=0)
+    return joint_in[(s, parent_edge[s])]
+
+
+def _topological(parent: np.ndarray, root: int) -> list[int]:
+    order, todo = [], [root]
+    while todo:
+        s = todo.pop(0)
+        order.append(s)
+        todo.extend(np.flatnonzero(parent == s).tolist())
+    return order
+
+
+def _end_site(local: np.ndarray) -> np.ndarray:
+    """End Site of a leaf: along its markers' mean direction, as far as its farthest marker."""
+    c = local.mean(axis=0)
+    n = np.linalg.norm(c)
+    if n < 1e-6:
+        return np.array([0.0, 0.0, 10.0])
+    u = c / n
+    return u * max(float((local @ u).max()), n)
+
+
+def _fallback_shape(obs: np.ndarray, rest: int, shape: np.ndarray) -> np.ndarray:
+    """Shape for segments Procrustes cannot align (fewer than 3 non-collinear points).
+
+    Each point is placed relative to the last point (the segment's joint) as seen
+    at the visible frame nearest ``rest``, at its median distance over the take.
+    """
+    F, P, _ = obs.shape
+    out = shape.copy()
+    anchor = P - 1
+    vis = np.isfinite(obs).all(-1)
+    for p in range(P):
+        if np.isfinite(out[p]).all():
+            continue
+        both = vis[:, p] & vis[:, anchor]
+        if p == anchor:
+            fr = np.flatnonzero(vis[:, p])
+            if fr.size:
+                out[p] = obs[fr[np.argmin(np.abs(fr - rest))], p]
+            continue
+        fr = np.flatnonzero(both)
+        if not fr.size:
+            continue
+        f = fr[np.argmin(np.abs(fr - rest))]
+        d = obs[fr, p] - obs[fr, anchor]
+        length = np.median(np.linalg.norm(d, axis=1))
+        v = obs[f, p] - obs[f, anchor]
+        nv = np.linalg.norm(v)
+        if nv > 0:
+            out[p] = v / nv * length  # relative to the anchor; anchor placed below
+    if np.isfinite(out[anchor]).all():
+        a = out[anchor]
+        for p in range(P):
+            if p != anchor and not np.isfinite(shape[p]).all() and np.isfinite(out[p]).all():
+                out[p] = a + out[p]
+    return out

@@ -1,0 +1,183 @@
+"""Segment: group markers into rigid bodies (Kirk et al. 2005, §3.1).
+
+Markers on one rigid segment keep constant distances. For a jittered uniform
+sampling of frames (every half second, plus or minus a few thirtieths), the
+standard deviation of every pairwise distance is computed; these become
+Gaussian affinities that Ng–Jordan–Weiss spectral clustering splits into
+groups. Several samplings are clustered and the clustering with the smallest
+within-group spread is kept (a RANSAC-like guard against sporadic jumps). The
+number of groups is given or taken from the eigen-gap.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..artifacts import Markers, Segments
+from ..errors import DataError
+from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
+
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Params:
+    n_segments: int | None = None
+    """Number of segments; None: from the eigen-gap."""
+    interval_s: float = 0.5
+    """Sampling interval (Kirk: half a second)."""
+    jitter_s: float = 0.1
+    """Each sample is moved by up to this much (Kirk: a few thirtieths of a second)."""
+    min_samples: int = 60
+    """Fewer samples than this: the interval shrinks (short takes)."""
+    max_samples: int = 600
+    """More samples than this: the interval grows (long takes)."""
+    n_samplings: int = 5
+    sigma_mm: float | None = None
+    """Width of the Gaussian that turns a distance std into an affinity; None:
+    chosen from the data (the width, among a few fractions of the spread of the
+    stds, that gives the clearest eigen-gap)."""
+    min_seen: int = 8
+    """A marker seen in fewer sampled frames than this is left out of the groups."""
+    seed: int = 0
+
+
+def sample_frames(n_frames: int, rate: float, params: Params, rng: np.random.Generator) -> np.ndarray:
+    """A jittered uniform sampling of frame indices (sorted, unique)."""
+    step = params.interval_s * rate
+    n = n_frames / max(step, 1e-9)
+    if n < params.min_samples:
+        step = n_frames / params.min_samples
+    elif n > params.max_samples:
+        step = n_frames / params.max_samples
+    base = np.arange(step / 2, n_frames, max(step, 1.0))
+    jit = min(params.jitter_s * rate, step / 2)
+    idx = np.rint(base + rng.uniform(-jit, jit, size=base.size)).astype(int)
+    return np.unique(np.clip(idx, 0, n_frames - 1))
+
+
+def distance_std(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Std over frames of every pairwise marker distance.
+
+    points : (K, M, 3) ndarray, NaN gaps.
+    Returns (std (M, M) with NaN where never seen together, count (M, M) frames seen together).
+    """
+    d = np.linalg.norm(points[:, :, None, :] - points[:, None, :, :], axis=-1)  # (K, M, M)
+    ok = np.isfinite(d)
+    cnt = ok.sum(axis=0)
+    d0 = np.where(ok, d, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = d0.sum(axis=0) / cnt
+        var = (np.where(ok, d - mean, 0.0) ** 2).sum(axis=0) / cnt
+    std = np.sqrt(var)
+    std[cnt < 2] = np.nan
+    return std, cnt
+
+
+def spread_cost(std: np.ndarray, labels: np.ndarray) -> float:
+    """Kirk's criterion: sum over groups of within-group distance std, normalised by group size."""
+    cost = 0.0
+    for g in np.unique(labels[labels >= 0]):
+        idx = np.flatnonzero(labels == g)
+        if idx.size > 1:
+            sub = std[np.ix_(idx, idx)]
+            cost += np.nansum(np.triu(sub, 1)) / idx.size
+    return float(cost)
+
+
+def affinity(std: np.ndarray, sigma: float) -> np.ndarray:
+    W = np.exp(-0.5 * (np.nan_to_num(std, nan=np.inf) / sigma) ** 2)
+    np.fill_diagonal(W, 1.0)
+    return W
+
+
+SIGMA_FRACTIONS = (0.03, 0.06, 0.12, 0.25, 0.5)
+
+
+def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
+    """Affinity width, number of groups (from the eigen-gap) and the eigenvalues.
+
+    std : (M, M) pooled distance std. When ``sigma`` is None, try a few
+    fractions of the upper spread of the off-diagonal stds and keep the width
+    whose eigen-gap (at ``k``, or at its own best k) is the widest.
+    """
+    M = std.shape[0]
+    off = std[~np.eye(M, dtype=bool)]
+    off = off[np.isfinite(off)]
+    scale = float(np.percentile(off, 75)) if off.size else 1.0
+    scale = scale if scale > 0 else 1.0
+    cands = [sigma] if sigma is not None else [f * scale for f in SIGMA_FRACTIONS]
+    best = None
+    for sg in cands:
+        eig = np.linalg.eigvalsh(normalized_affinity(affinity(std, sg)))[::-1]
+        kk = k if k is not None else eigengap_k(eig, 1, max(1, M - 1))
+        gap = float(eig[kk - 1] - eig[kk]) if kk < M else float(eig[kk - 1])
+        if best is None or gap > best[0] + 1e-9:
+            best = (gap, sg, kk, eig)
+    return float(best[1]), int(best[2]), best[3]
+
+
+def run(markers: Markers, params: Params = Params()) -> Segments:
+    """Group the markers of a take into rigid segments.
+
+    Raises DataError when fewer than two segments can be told apart.
+    """
+    rng = np.random.default_rng(params.seed)
+    F, M, _ = markers.points.shape
+    if M < 2:
+        raise DataError(f"only {M} marker — a skeleton needs markers on at least two segments", markers.source or None)
+    samplings = [sample_frames(F, markers.rate, params, rng) for _ in range(params.n_samplings)]
+    stds = []
+    seen = np.zeros(M, dtype=int)
+    for s in samplings:
+        std, cnt = distance_std(markers.points[s])
+        stds.append(std)
+        seen = np.maximum(seen, np.diag(cnt))
+    use = seen >= params.min_seen
+    if use.sum() < 2:
+        raise DataError("fewer than two markers are seen often enough to be grouped", markers.source or None)
+    iu = np.flatnonzero(use)
+    pooled = np.nanmedian(np.stack(stds), axis=0)[np.ix_(iu, iu)]
+    k = params.n_segments
+    sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
+    if k is None:
+        k = k_auto
+    if k > iu.size:
+        raise DataError(f"asked for {k} segments but only {iu.size} usable markers", markers.source or None)
+
+    best = None
+    for si, std in enumerate(stds):
+        sub = std[np.ix_(iu, iu)]
+        res = spectral_clustering(affinity(sub, sigma), k, rng=rng)
+        cost = spread_cost(sub, res.labels)
+        if best is None or cost < best[0] - 1e-12:
+            best = (cost, si, res.labels)
+    cost, si, lab = best
+    group = np.full(M, -1, dtype=int)
+    group[iu] = lab
+    # number groups by the first marker in each, for stable output
+    order = {}
+    for g in group:
+        if g >= 0 and g not in order:
+            order[g] = len(order)
+    group = np.array([order.get(g, -1) for g in group], dtype=int)
+    n = len(order)
+    if n < 2:
+        raise DataError(
+            "all markers move as one rigid body — nothing moves relative to anything, so there is no joint to find",
+            markers.source or None,
+        )
+    info = {
+        "version": VERSION,
+        "n_segments": n,
+        "auto": params.n_segments is None,
+        "sampling": int(si),
+        "samples": int(samplings[si].size),
+        "spread_cost": cost,
+        "sigma_mm": sigma,
+        "left_out": [markers.labels[i] for i in np.flatnonzero(~use)],
+        "groups": [[markers.labels[i] for i in np.flatnonzero(group == g)] for g in range(n)],
+    }
+    return Segments(markers=markers, group=group, dist_std=stds[si], eigvals=eig, info=info)
+
