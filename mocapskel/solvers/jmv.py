@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["JointFit", "joint_cost", "jmv_joint", "pair_cost"]
+__all__ = ["JointFit", "joint_cost", "jmv_joint", "pair_cost", "algebraic_init", "nearest_midpoint"]
 
 #: Distances below this fraction of the data's scale are treated as zero when
 #: normalising directions (a joint sitting exactly on a marker).
@@ -175,8 +175,138 @@ def nearest_midpoint(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray
     return out
 
 
+def _adj3(A: np.ndarray) -> np.ndarray:
+    """Adjugates of (F, 3, 3) matrices: ``A @ adj(A) = det(A) I``."""
+    return np.stack([np.cross(A[:, 1], A[:, 2]), np.cross(A[:, 2], A[:, 0]), np.cross(A[:, 0], A[:, 1])], axis=2)
+
+
+def _four_point_init(q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Closed-form joint from 4 points that keep constant distances to it (noise-free: exact).
+
+    With ``p'_k = p_k - p_0`` and ``delta_k = s_k - s_0`` (squared radii), every
+    frame gives ``-2 p'_k . c' = delta_k - |p'_k|^2`` (k = 1..3), so that
+    ``det(A) c' = adj(A) (delta - n)``; the remaining condition
+    ``|c'|^2 = s_0`` is quadratic in ``delta`` and linear in ``s_0``. Lifting
+    ``delta delta^T`` to 6 unknowns makes it linear (10 unknowns, one equation
+    per frame); the lifted system of two 2-point groups has a one-dimensional
+    null space, resolved by requiring the lifted block to equal
+    ``delta delta^T`` (a quartic in one variable).
+
+    q : (F, 4, 3) the points (frames with a NaN are skipped).
+    Returns (c (F, 3) with NaN where unsolved, s (4,) squared radii) or None.
+    """
+    F = q.shape[0]
+    seen = np.isfinite(q).all((1, 2))
+    if seen.sum() < 12:
+        return None
+    qq = q[seen]
+    Pp = qq[:, 1:] - qq[:, :1]
+    A = -2.0 * Pp
+    Ad = _adj3(A)
+    det = np.einsum("fi,fi->f", A[:, 0], Ad[:, :, 0])
+    n = np.einsum("fki,fki->fk", Pp, Pp)
+    Qm = np.einsum("fki,fkj->fij", Ad, Ad)
+    X = np.concatenate([
+        np.stack([Qm[:, 0, 0], 2 * Qm[:, 0, 1], 2 * Qm[:, 0, 2], Qm[:, 1, 1], 2 * Qm[:, 1, 2], Qm[:, 2, 2]], 1),
+        -2.0 * np.einsum("fij,fj->fi", Qm, n),
+        -(det**2)[:, None],
+    ], axis=1)
+    y = -np.einsum("fi,fij,fj->f", n, Qm, n)
+    rs = np.linalg.norm(np.concatenate([X, y[:, None]], axis=1), axis=1)
+    rs = np.where(rs > 0, rs, 1.0)
+    X, y = X / rs[:, None], y / rs
+    # column scaling: unknowns have units L^4 (quadratic), L^2 (delta, s0)
+    cs = np.linalg.norm(X, axis=0)
+    cs = np.where(cs > 0, cs, 1.0)
+    U, sv, Vt = np.linalg.svd(X / cs, full_matrices=False)
+    if sv[0] <= 0 or sv[-2] < 1e-12 * sv[0]:
+        return None
+    z0 = (Vt.T @ ((U.T @ y) / np.where(sv > 1e-14 * sv[0], sv, np.inf))) / cs
+    v = Vt[-1] / cs  # the (near) null direction
+    iu = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    d0, dv = z0[6:9], v[6:9]
+    coef = np.array([[dv[i] * dv[j], d0[i] * dv[j] + d0[j] * dv[i] - v[k], d0[i] * d0[j] - z0[k]]
+                     for k, (i, j) in enumerate(iu)])  # a t^2 + b t + c per lifted entry
+    # minimise sum (a t^2 + b t + c)^2: roots of its cubic derivative
+    a, b, c = coef.T
+    quart = np.array([np.sum(a * a), 2 * np.sum(a * b), np.sum(b * b + 2 * a * c), 2 * np.sum(b * c), np.sum(c * c)])
+    roots = np.roots(np.polyder(quart))
+    roots = roots[np.abs(roots.imag) <= 1e-9 * np.maximum(np.abs(roots.real), 1.0)].real
+    if roots.size == 0:
+        return None
+    t = roots[np.argmin(np.polyval(quart, roots))]
+    delta = d0 + t * dv
+    s0 = z0[9] + t * v[9]
+    good = np.abs(det) > 1e-3 * np.median(np.abs(det))
+    cc = np.full((int(seen.sum()), 3), np.nan)
+    cc[good] = qq[good, 0] + np.einsum("fij,fj->fi", Ad[good], delta - n[good]) / det[good, None]
+    c_full = np.full((F, 3), np.nan)
+    c_full[seen] = cc
+    return c_full, np.concatenate([[s0], s0 + delta])
+
+
+def algebraic_init(points: ArrayLike) -> np.ndarray | None:
+    """(F, 3) closed-form joint guess from points of two groups without a basis.
+
+    Takes the four points (all seen in at least 12 frames) whose tetrahedra
+    have the largest median volume and applies the exact four-point solution
+    (see ``_four_point_init``); NaN in frames where those four are not seen or
+    are (nearly) coplanar. ``None`` when fewer than 4 points or the solution
+    is undetermined.
+    """
+    from itertools import combinations
+
+    pts = _as_points(points, "points")
+    F, M, _ = pts.shape
+    if M < 4:
+        return None
+    vis = np.isfinite(pts).all(-1)
+    best, best_vol = None, 0.0
+    combos = list(combinations(range(M), 4))
+    if len(combos) > 70:
+        combos = combos[:: len(combos) // 70 + 1]
+    for cb in combos:
+        fr = np.flatnonzero(vis[:, cb].all(1))
+        if fr.size < 12:
+            continue
+        fr = fr[:: max(fr.size // 50, 1)]
+        q = pts[fr][:, cb]
+        e = q[:, 1:] - q[:, :1]
+        vol = np.abs(np.linalg.det(e))
+        size = np.linalg.norm(e, axis=-1).max(1)
+        score = float(np.median(vol / np.maximum(size, 1e-300) ** 3))
+        if score > best_vol:
+            best, best_vol = cb, score
+    if best is None or best_vol < 1e-6:
+        return None
+    out = _four_point_init(pts[:, best])
+    return None if out is None else out[0]
+
+
+def _fill_holes(c: np.ndarray, fallback: np.ndarray, max_gap: int = 10) -> np.ndarray:
+    """Fill NaN rows of c (F, 3): linear interpolation over gaps of up to ``max_gap``
+    frames between good frames, ``fallback`` elsewhere."""
+    good = np.isfinite(c).all(-1)
+    if good.all() or not good.any():
+        return c if good.all() else fallback
+    out = c.copy()
+    F = c.shape[0]
+    idx = np.flatnonzero(good)
+    fr = np.arange(F)
+    for k in range(3):
+        out[:, k] = np.interp(fr, idx, c[idx, k])
+    # gap length of each missing frame: distance between the good frames around it
+    nxt = idx[np.minimum(np.searchsorted(idx, fr), idx.size - 1)]
+    prv = idx[np.maximum(np.searchsorted(idx, fr, side="right") - 1, 0)]
+    inner = (fr > idx[0]) & (fr < idx[-1]) & (nxt - prv - 1 <= max_gap)
+    bad = ~good & ~inner
+    out[bad] = fallback[bad]
+    return out
+
+
 def _auto_init(a: np.ndarray, b: np.ndarray, alpha: float) -> tuple[np.ndarray, str]:
-    """MTB closed form from the better side when a side has a basis, else nearest midpoint."""
+    """MTB closed form from the better side when a side has a basis, else the algebraic
+    four-point solution, else the nearest midpoint."""
     from .mtb import mtb_basis, mtb_joint  # local: mtb imports this module
 
     best: JointFit | None = None
@@ -188,11 +318,10 @@ def _auto_init(a: np.ndarray, b: np.ndarray, alpha: float) -> tuple[np.ndarray, 
                 if fit and (best is None or fit.cost < best.cost):
                     best = fit
     if best is not None:
-        guess = best.centre
-        hole = ~np.isfinite(guess).all(-1)
-        if hole.any():
-            guess = np.where(hole[:, None], nearest_midpoint(a, b), guess)
-        return guess, "mtb"
+        return _fill_holes(best.centre, nearest_midpoint(a, b)), "mtb"
+    guess = algebraic_init(np.concatenate([a, b], axis=1))
+    if guess is not None and np.isfinite(guess).all(-1).mean() > 0.5:
+        return _fill_holes(guess, nearest_midpoint(a, b)), "algebraic"
     return nearest_midpoint(a, b), "nearest"
 
 

@@ -47,7 +47,7 @@ __all__ = [
 ORDERS: tuple[str, ...] = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
 
 #: cos(middle angle) below which a decomposition counts as gimbal-locked.
-_GIMBAL_TOL = 1e-9
+_GIMBAL_TOL = 1e-12
 
 
 def _parse_order(order: str) -> tuple[int, int, int, float]:
@@ -108,7 +108,7 @@ def matrix_to_euler(R: np.ndarray, order: str = "ZXY") -> np.ndarray:
     The middle angle is in [-90, 90] and the others in [-180, 180]. The first
     angle is found from the matrix's last column and the third from the
     first one after removing it (Mike Day's method), so the result reproduces
-    ``R`` even at and near gimbal lock; at exact lock (``cos b < 1e-9``) the
+    ``R`` even at and near gimbal lock; at exact lock (``cos b < 1e-12``) the
     first angle is set to 0 and the third carries the whole rotation. Never NaN
     for finite input.
 
@@ -150,7 +150,7 @@ def unwrap_euler(angles: np.ndarray, order: str = "ZXY") -> np.ndarray:
     all in a few vector operations over frames (no per-frame Python loop):
 
     1. Canonicalise every frame: middle angle in [-90, 90], others wrapped.
-    2. Gimbal lock: at frames with ``cos b < 1e-9`` only ``a + s sin(b) c`` is
+    2. Gimbal lock: at frames with ``cos b < 1e-12`` only ``a + s sin(b) c`` is
        determined; carry ``a`` forward from the last unlocked frame (a running
        maximum of indices) and let ``c`` absorb the difference.
     3. Branch choice. With ``x_f`` the canonical solution of frame f and
@@ -222,7 +222,8 @@ def unwrap_euler(angles: np.ndarray, order: str = "ZXY") -> np.ndarray:
     d_same = np.sum(_wrap(x[1:] - prev) ** 2, axis=-1)
     d_flip = np.sum(_wrap(y[1:] - prev) ** 2, axis=-1)
     step = d_flip < d_same
-    branch = np.concatenate([np.zeros_like(step[:1]), np.cumsum(step, axis=0) % 2 == 1], axis=0)
+    branch = np.zeros(x.shape[:-1], dtype=bool)
+    branch[1:] = np.cumsum(step, axis=0) % 2 == 1
     branch ^= branch.mean(axis=0) > 0.5
     out = np.where(branch[..., None], y, x)
 

@@ -17,6 +17,8 @@ from ..artifacts import Joints, Topology
 from ..errors import DataError
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import jmv_joint, joint_cost
+from ..solvers.rigid import kabsch
+from ..solvers.score import score_from_markers
 
 VERSION = 1
 
@@ -28,6 +30,9 @@ class Params:
     method: str = "auto"
     alpha: float = 0.0
     """Kirk's distance penalty in the final fit (0: dropped, as the paper's discussion advises)."""
+    hinge_ratio: float = 0.3
+    """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
+    its centre is then fixed along the axis by the plane of the neighbouring joints."""
 
 
 def run(topology: Topology, params: Params = Params()) -> Joints:
@@ -56,10 +61,31 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         tree = solve_tree(groups, edges, alpha=params.alpha)
         centres = tree.centres
         methods = list(tree.method)
+        centres = centres.copy()
         for e in range(E):
             per_joint[e]["why"] = _why(tree.method[e], tree.category, edges[e])
             if not tree.ok[e]:
                 per_joint[e]["note"] = tree.reason[e]
+    hinges: dict[int, tuple] = {}
+    if params.method in ("score", "auto"):
+        for e, (a, b) in enumerate(edges):
+            fit = score_from_markers(groups[a], groups[b], hinge_threshold=params.hinge_ratio)
+            if fit.ok and fit.hinge:
+                hinges[e] = (fit, a, b)
+            if fit.ok:
+                centres[:, e] = fit.centre
+                methods[e] = "score-hinge" if fit.hinge else "score"
+                per_joint[e]["why"] = (
+                    "both segments have 3+ markers: SCoRE linear least squares"
+                    + ("; hinge-like motion, centre on the axis nearest the markers" if fit.hinge else "")
+                )
+                per_joint[e]["hinge"] = bool(fit.hinge)
+            elif params.method == "score":
+                per_joint[e]["note"] = f"SCoRE not possible ({fit.reason}); {methods[e]} used"
+    for e, (fit, a, b) in hinges.items():
+        centres[:, e], shift = place_on_hinge(fit, groups[a], centres, edges, e)
+        if shift is not None:
+            per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
     residual = np.full(E, np.nan)
     for e, (a, b) in enumerate(edges):
         both = np.concatenate([groups[a], groups[b]], axis=1)
@@ -81,3 +107,27 @@ def _why(method: str, category: tuple[str, ...], edge: np.ndarray) -> str:
         "mtb-propagated": f"closed form with solved joints as markers ({cats})",
         "jmv": f"no basis available, joint-marker-variance optimisation ({cats})",
     }.get(method, cats)
+
+
+def place_on_hinge(fit, A: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
+    """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints.
+
+    A hinge's centre is undetermined along its axis. Anatomically (a knee
+    between hip and ankle, an elbow between shoulder and wrist) the centre lies
+    where the axis meets the plane of the adjacent joint centres; those are
+    fixed in one of the two segments, so their distance along the axis is
+    constant. fit : a hinge ScoreFit from score_from_markers; A : (F, Na, 3)
+    markers of the fit's first segment. Returns (centre (F, 3), shift or None).
+    """
+    a, b = edges[e]
+    nb = [k for k in range(edges.shape[0]) if k != e and (a in edges[k] or b in edges[k])]
+    R1, t1, _ = kabsch(fit.markers1, A)
+    if not nb:
+        return fit.centre, None
+    u = np.einsum("fij,j->fi", R1, fit.axis1)
+    s = np.stack([np.einsum("fi,fi->f", centres[:, k] - fit.centre, u) for k in nb], axis=1)
+    s = np.nanmean(s, axis=1) if np.isfinite(s).any() else s[:, 0]
+    if not np.isfinite(s).any():
+        return fit.centre, None
+    shift = float(np.nanmedian(s))
+    return fit.centre + shift * u, shift

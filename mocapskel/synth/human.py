@@ -120,7 +120,7 @@ class _MarkerSpec:
 
 
 _MARKER_SPEC = {
-    "Pelvis": _MarkerSpec((5, -85, 15), (5, 85, 15), (85, 110), (0.0, 1.0), (0, 0, 1), 115),
+    "Pelvis": _MarkerSpec((0, 0, -10), (0, 0, 60), (105, 135), (0.0, 1.0), (1, 0, 0), 180),
     "Torso": _MarkerSpec((55, 0, 40), (45, 0, 400), (85, 130), (0.1, 0.9), (1, 0, 0), 180),
     "Head": _MarkerSpec((20, 0, 60), (30, 0, 250), (88, 102), (0.35, 0.95), (1, 0, 0), 180),
     "LUpperArm": _MarkerSpec((0, 0, 0), (0, 5, -300), (35, 55), (0.2, 0.85), (0, 1, 0), 120),
@@ -128,7 +128,7 @@ _MARKER_SPEC = {
     "LHand": _MarkerSpec((0, 3, -20), (0, 5, -180), (22, 32), (0.2, 0.9), (-1, 0, 0), 80),
     "LThigh": _MarkerSpec((0, 0, 0), (0, 5, -430), (60, 85), (0.2, 0.8), (0.6, 1, 0), 120),
     "LShank": _MarkerSpec((0, 0, 0), (-10, 0, -420), (40, 60), (0.15, 0.8), (0.5, 1, 0), 120),
-    "LFoot": _MarkerSpec((-60, 0, -40), (170, 5, -55), (25, 50), (0.0, 1.0), (0, 0, 1), 100),
+    "LFoot": _MarkerSpec((-20, 0, -55), (175, 5, -60), (25, 45), (0.3, 1.0), (0, 0, 1), 100),
 }
 
 # Joint motion. Ball joints: range (deg) of each rotation-vector component
@@ -174,15 +174,30 @@ def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
     ths = np.where(small, 1.0, th)
     a = np.where(small, 1.0 - th2 / 6.0, np.sin(ths) / ths)
     b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / np.where(small, 1.0, th2))
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    R = a[..., None, None] * K + b[..., None, None] * (K @ K)
-    R[..., 0, 0] += 1.0
-    R[..., 1, 1] += 1.0
-    R[..., 2, 2] += 1.0
+    # R = I + a K + b K^2 with K = [v]x and K^2 = v v^T - |v|^2 I
+    R = (b[..., None, None] * v[..., :, None]) * v[..., None, :]
+    diag = 1.0 - b * th2
+    R[..., 0, 0] += diag
+    R[..., 1, 1] += diag
+    R[..., 2, 2] += diag
+    av = a[..., None] * v
+    R[..., 0, 1] -= av[..., 2]
+    R[..., 1, 0] += av[..., 2]
+    R[..., 0, 2] += av[..., 1]
+    R[..., 2, 0] -= av[..., 1]
+    R[..., 1, 2] -= av[..., 0]
+    R[..., 2, 1] += av[..., 0]
     return R
+
+
+def _matmul33(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) @ (..., 3, 3) as three broadcast products (faster than batched matmul)."""
+    return A[..., :, 0, None] * B[..., None, 0, :] + A[..., :, 1, None] * B[..., None, 1, :] + A[..., :, 2, None] * B[..., None, 2, :]
+
+
+def _apply33(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotations applied to (P, 3) points -> (F, P, 3)."""
+    return A[:, None, :, 0] * x[None, :, 0, None] + A[:, None, :, 1] * x[None, :, 1, None] + A[:, None, :, 2] * x[None, :, 2, None]
 
 
 def _rot_z(angle: np.ndarray) -> np.ndarray:
@@ -345,12 +360,11 @@ def _phase_envelope(rng: np.random.Generator, t: np.ndarray, n_groups: int, base
     idx = np.minimum((t / phase_len).astype(int), n_phase - 1)
     ind = np.zeros((t.size, n_groups))
     ind[np.arange(t.size), order[idx]] = 1.0
-    # smooth the switching with a moving average over a third of a phase
+    # smooth the switching: three moving averages over a ninth of a phase (C2, no jerks)
     dt = t[1] - t[0] if t.size > 1 else 1.0
-    w = max(1, int(round(phase_len / 3.0 / dt)))
-    if w > 1:
-        c = np.cumsum(np.pad(ind, ((w // 2, w - 1 - w // 2), (0, 0)), mode="edge"), axis=0)
-        c = np.vstack([np.zeros((1, n_groups)), c])
+    w = max(1, int(round(phase_len / 9.0 / dt)))
+    for _ in range(3 if w > 1 else 0):
+        c = np.cumsum(np.pad(ind, ((w // 2 + 1, w - 1 - w // 2), (0, 0)), mode="edge"), axis=0)
         ind = (c[w:] - c[:-w]) / w
     return base + (1.0 - base) * ind
 
@@ -386,7 +400,7 @@ def _rom_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
     yaw = np.deg2rad(_rescale(_smooth(rng, t, 1, 0.02, 0.08), -150.0, 150.0)[:, 0])
     tilt = np.deg2rad(_rescale(_smooth(rng, t, 2, 0.05, 0.3), np.array([-10.0, -10.0]), np.array([10.0, 20.0])))
     root_pos = np.column_stack([xy, z])
-    root_rot = _rot_z(yaw) @ rotvec_to_matrix(np.column_stack([tilt, np.zeros(F)]))
+    root_rot = _matmul33(_rot_z(yaw), rotvec_to_matrix(np.column_stack([tilt, np.zeros(F)])))
     return root_pos, root_rot, rv
 
 
@@ -434,7 +448,7 @@ def _walk_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
     z = subj.pelvis_height - 15.0 * size + 12.0 * size * np.cos(2.0 * phL)
     root_pos = np.column_stack([pos, z])
     tilt = deg(np.column_stack([4.0 * np.cos(phL), 3.0 + 2.0 * np.sin(2.0 * phL), np.zeros(F)]))
-    root_rot = _rot_z(heading + deg(5.0 * np.sin(phL))) @ rotvec_to_matrix(tilt)
+    root_rot = _matmul33(_rot_z(heading + deg(5.0 * np.sin(phL))), rotvec_to_matrix(tilt))
     return root_pos, root_rot, rv
 
 
@@ -450,28 +464,33 @@ def _forward(subj: _Subject, root_pos: np.ndarray, root_rot: np.ndarray, rv: np.
     rel = rotvec_to_matrix(rv[:, 1:])  # (F, S-1, 3, 3)
     for s in range(1, _S):
         p = PARENT[s]
-        G[:, s] = G[:, p] @ rel[:, s - 1]
-        O[:, s] = O[:, p] + G[:, p] @ (subj.joint_rest[s] - subj.joint_rest[p])
+        G[:, s] = _matmul33(G[:, p], rel[:, s - 1])
+        O[:, s] = O[:, p] + _apply33(G[:, p], (subj.joint_rest[s] - subj.joint_rest[p])[None])[:, 0]
     pts = np.empty((F, subj.marker_rest.shape[0], 3))
     for s in range(_S):
         idx = np.flatnonzero(subj.marker_segment == s)
         local = subj.marker_rest[idx] - subj.joint_rest[s]
-        pts[:, idx] = O[:, s, None, :] + np.einsum("fij,mj->fmi", G[:, s], local)
+        pts[:, idx] = O[:, s, None, :] + _apply33(G[:, s], local)
     return G, O, pts
 
 
 def _floor_lift(subj: _Subject, G: np.ndarray, O: np.ndarray) -> np.ndarray:
-    """(F,) vertical shift that puts the lower heel or toe point of the feet at its rest height."""
+    """(F,) vertical shift that puts the lowest heel or toe point (a smooth minimum) at its rest height."""
     spec = _MARKER_SPEC["LFoot"]
+    tau = 8.0 * subj.seg_factor[SEGMENTS.index("LFoot")]  # mm
     lows, rest_low = [], np.inf
     for name in ("LFoot", "RFoot"):
         s = SEGMENTS.index(name)
         pts = np.array([spec.p0, spec.p1], float) * subj.seg_factor[s]
         if name.startswith("R"):
             pts = _mirror(pts)
-        lows.append((O[:, s, None, 2] + np.einsum("fj,pj->fp", G[:, s, 2], pts)).min(1))
+        lows.append(O[:, s, None, 2] + np.einsum("fj,pj->fp", G[:, s, 2], pts))
         rest_low = min(rest_low, subj.pelvis_height + subj.joint_rest[s, 2] + pts[:, 2].min())
-    return rest_low - np.minimum(*lows)
+    z = np.concatenate(lows, axis=1)  # (F, 4)
+    # smooth minimum (no kink when the supporting foot changes)
+    zmin = z.min(1, keepdims=True)
+    soft = zmin[:, 0] - tau * np.log(np.exp(-(z - zmin) / tau).sum(1))
+    return rest_low - soft
 
 
 def _band_noise(rng: np.random.Generator, n: int, channels: int, rate: float, band: tuple[float, float]) -> np.ndarray:
@@ -497,7 +516,7 @@ def _soft_tissue(rng: np.random.Generator, n: int, marker_segment: np.ndarray, r
     d = np.sqrt(1.0 - c) * own + np.sqrt(c) * shared[:, marker_segment]
     d -= d.mean(axis=0)
     cur = np.sqrt(np.mean(np.einsum("fmi,fmi->fm", d, d), axis=0))
-    return d * (rms / np.where(cur > 0, cur, 1.0))
+    return d * (rms / np.where(cur > 0, cur, 1.0))[:, None]
 
 
 # --------------------------------------------------------------------------- public

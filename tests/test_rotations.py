@@ -1,0 +1,287 @@
+"""Tests of the rotation kernels: BVH Euler angles, continuity, slerp, SO(3) projection."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from mocapskel.solvers.rotations import (
+    ORDERS,
+    euler_to_matrix,
+    matrix_to_euler,
+    matrix_to_quat,
+    matrix_to_rotvec,
+    project_to_so3,
+    quat_to_matrix,
+    rotvec_to_matrix,
+    slerp_fill,
+    unwrap_euler,
+)
+
+
+def _elementary(axis: str, deg: float) -> np.ndarray:
+    """Right-handed rotation about one coordinate axis, written out by hand."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return {
+        "X": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "Y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "Z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
+def _angle_between(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """Geodesic angle (degrees) between batches of rotations."""
+    c = (np.einsum("...ij,...ij->...", Ra, Rb) - 1) / 2
+    return np.degrees(np.arccos(np.clip(c, -1, 1)))
+
+
+def _slerp_path(keys: np.ndarray, steps: int) -> np.ndarray:
+    """(K-1)*steps+1 rotations through K keyframes at constant speed per segment."""
+    out = [keys[0][None]]
+    t = np.arange(1, steps + 1) / steps
+    for a, b in zip(keys[:-1], keys[1:]):
+        rel = matrix_to_rotvec(a.T @ b)
+        out.append(a @ rotvec_to_matrix(t[:, None] * rel))
+    return np.concatenate(out)
+
+
+# --------------------------------------------------------------------------- Euler
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_euler_to_matrix_is_intrinsic_product_in_channel_order(order: str) -> None:
+    rng = np.random.default_rng(1)
+    for a, b, c in rng.uniform(-180, 180, (20, 3)):
+        want = _elementary(order[0], a) @ _elementary(order[1], b) @ _elementary(order[2], c)
+        np.testing.assert_allclose(euler_to_matrix([a, b, c], order), want, atol=1e-14)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_euler_round_trip_random_rotations(order: str) -> None:
+    R = Rotation.random(2000, random_state=np.random.default_rng(2)).as_matrix().reshape(40, 50, 3, 3)
+    ang = matrix_to_euler(R, order)
+    assert ang.shape == (40, 50, 3)
+    np.testing.assert_allclose(euler_to_matrix(ang, order), R, atol=1e-13)
+    assert np.all(np.abs(ang[..., 1]) <= 90) and np.all(np.abs(ang) <= 180)
+    # the same as scipy's intrinsic (upper-case) convention
+    np.testing.assert_allclose(Rotation.from_euler(order, ang.reshape(-1, 3), degrees=True).as_matrix(),
+                               R.reshape(-1, 3, 3), atol=1e-13)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_second_euler_solution_is_the_same_rotation(order: str) -> None:
+    ang = np.random.default_rng(3).uniform(-180, 180, (500, 3))
+    other = ang + [180.0, 0.0, 180.0]
+    other[:, 1] = 180.0 - ang[:, 1]
+    np.testing.assert_allclose(euler_to_matrix(other, order), euler_to_matrix(ang, order), atol=1e-13)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_gimbal_lock_gives_no_nan_and_the_same_rotation(order: str) -> None:
+    rng = np.random.default_rng(4)
+    ang = rng.uniform(-180, 180, (400, 3))
+    ang[:, 1] = rng.choice([90.0, -90.0], 400) + rng.choice([0.0, 1e-12, 1e-9, 1e-7, 1e-4], 400)
+    R = euler_to_matrix(ang, order)
+    back = matrix_to_euler(R, order)
+    assert np.isfinite(back).all()
+    np.testing.assert_allclose(euler_to_matrix(back, order), R, atol=1e-12)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.sampled_from(ORDERS),
+    st.floats(-720, 720),
+    st.one_of(st.floats(-720, 720), st.sampled_from([90.0, -90.0, 270.0, 89.99999999])),
+    st.floats(-720, 720),
+)
+def test_euler_round_trip_any_angles(order: str, a: float, b: float, c: float) -> None:
+    R = euler_to_matrix([a, b, c], order)
+    back = matrix_to_euler(R, order)
+    assert np.isfinite(back).all()
+    np.testing.assert_allclose(euler_to_matrix(back, order), R, atol=1e-12)
+
+
+def test_bad_order_is_refused() -> None:
+    with pytest.raises(ValueError, match="permutation"):
+        euler_to_matrix([0, 0, 0], "XXY")
+    with pytest.raises(ValueError, match="permutation"):
+        matrix_to_euler(np.eye(3), "ZX")
+
+
+# --------------------------------------------------------------------------- continuity
+
+
+def _max_jump_ok(ang: np.ndarray, R: np.ndarray, slack: float = 1.5) -> None:
+    """Frame-to-frame Euler jumps bounded by the angular step (and 1/cos b for a, c)."""
+    step = _angle_between(R[:-1], R[1:])
+    cos_b = np.minimum(np.abs(np.cos(np.radians(ang[:-1, ..., 1]))), np.abs(np.cos(np.radians(ang[1:, ..., 1]))))
+    jump = np.abs(np.diff(ang, axis=0))
+    assert np.all(jump[..., 1] <= slack * step + 1e-6)
+    bound = slack * step / np.maximum(cos_b, 1e-300) + 1e-6
+    assert np.all(jump[..., 0] <= bound) and np.all(jump[..., 2] <= bound)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_unwrap_smooth_random_path_is_continuous(order: str) -> None:
+    rng = np.random.default_rng(5)
+    keys = Rotation.random(30, random_state=rng).as_matrix()
+    R = _slerp_path(keys, 25)  # about 7 degrees per frame at most
+    ang = unwrap_euler(matrix_to_euler(R, order), order)
+    np.testing.assert_allclose(euler_to_matrix(ang, order), R, atol=1e-12)
+    _max_jump_ok(ang, R)
+    # where the path is far from gimbal lock, no jump is large
+    far = np.abs(np.cos(np.radians(ang[:, 1]))) > 0.5
+    both = far[1:] & far[:-1]
+    assert np.abs(np.diff(ang, axis=0))[both].max() < 30
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_unwrap_full_turns_keep_counting(order: str) -> None:
+    # two and a half turns about the first axis, a slow wobble on the others
+    F = 400
+    truth = np.stack([np.linspace(-170, 730, F), 20 * np.sin(np.linspace(0, 6, F)), np.linspace(0, -500, F)], axis=1)
+    R = euler_to_matrix(truth, order)
+    ang = unwrap_euler(matrix_to_euler(R, order), order)
+    np.testing.assert_allclose(ang, truth, atol=1e-9)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_unwrap_recovers_a_smooth_path_from_scrambled_representations(order: str) -> None:
+    rng = np.random.default_rng(6)
+    F = 300
+    t = np.linspace(0, 1, F)[:, None]
+    truth = np.concatenate(
+        [-150 + 600 * t, 80 * np.sin(9 * t), 120 * np.cos(5 * t) - 300 * t], axis=1
+    )
+    scrambled = truth.copy()
+    alt = rng.random(F) < 0.5
+    scrambled[alt] += [180.0, 0.0, 180.0]
+    scrambled[alt, 1] = 180.0 - truth[alt, 1]
+    scrambled += 360.0 * rng.integers(-3, 4, (F, 3))
+    np.testing.assert_allclose(unwrap_euler(scrambled, order), truth, atol=1e-9)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_unwrap_through_gimbal_lock(order: str) -> None:
+    # the middle angle sweeps through +90 exactly at frame 30 and on to 110
+    F = 51
+    b = np.linspace(60, 110, F)
+    a = np.linspace(-40, 80, F)
+    c = 30 * np.sin(np.linspace(0, 3, F))
+    truth = np.stack([a, b, c], axis=1)
+    R = euler_to_matrix(truth, order)
+    ang = unwrap_euler(matrix_to_euler(R, order), order)
+    assert np.isfinite(ang).all()
+    np.testing.assert_allclose(euler_to_matrix(ang, order), R, atol=1e-12)
+    lock = 30
+    off = np.arange(F) != lock
+    np.testing.assert_allclose(ang[off], truth[off], atol=1e-6)
+    # at the locked frame a is held from the frame before and c carries the rest
+    np.testing.assert_allclose(ang[lock, 0], truth[lock - 1, 0], atol=1e-6)
+    assert np.abs(ang[lock] - truth[lock]).max() <= np.abs(np.diff(a)).max() + 1e-6
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_unwrap_near_gimbal_lock_and_locked_start(order: str) -> None:
+    rng = np.random.default_rng(7)
+    F = 200
+    # a pass that grazes the lock (b peaks at 89.9) while a and c turn
+    b = 89.9 - 400 * np.linspace(-1, 1, F) ** 2
+    truth = np.stack([np.linspace(0, 200, F), b, np.linspace(50, -100, F)], axis=1)
+    truth[:5, 1] = 90.0  # locked for the first frames
+    R = euler_to_matrix(truth, order)
+    ang = unwrap_euler(matrix_to_euler(R, order), order)
+    assert np.isfinite(ang).all()
+    np.testing.assert_allclose(euler_to_matrix(ang, order), R, atol=1e-10)
+    _max_jump_ok(ang[5:], R[5:])
+    # random rotations per frame: no NaN, same matrices
+    Rr = Rotation.random(100, random_state=rng).as_matrix()
+    np.testing.assert_allclose(euler_to_matrix(unwrap_euler(matrix_to_euler(Rr, order), order), order), Rr, atol=1e-12)
+
+
+def test_unwrap_trailing_axes_are_independent_and_idempotent() -> None:
+    rng = np.random.default_rng(8)
+    R = np.stack([_slerp_path(Rotation.random(6, random_state=rng).as_matrix(), 20) for _ in range(4)], axis=1)
+    ang = matrix_to_euler(R, "ZXY")
+    both = unwrap_euler(ang, "ZXY")
+    assert both.shape == ang.shape
+    for s in range(4):
+        np.testing.assert_array_equal(both[:, s], unwrap_euler(ang[:, s], "ZXY"))
+    np.testing.assert_allclose(unwrap_euler(both, "ZXY"), both, atol=1e-9)
+
+
+def test_unwrap_refuses_nan_and_handles_empty() -> None:
+    ang = np.zeros((5, 3))
+    ang[2, 1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        unwrap_euler(ang)
+    assert unwrap_euler(np.zeros((0, 2, 3))).shape == (0, 2, 3)
+    np.testing.assert_allclose(unwrap_euler([[[370.0, 100.0, -190.0]]]), [[[-170.0, 80.0, -10.0]]])
+
+
+# --------------------------------------------------------------------------- other helpers
+
+
+def test_rotvec_and_quaternion_round_trips_keep_shape() -> None:
+    R = Rotation.random(60, random_state=np.random.default_rng(9)).as_matrix().reshape(3, 4, 5, 3, 3)
+    v = matrix_to_rotvec(R)
+    assert v.shape == (3, 4, 5, 3) and np.all(np.linalg.norm(v, axis=-1) <= np.pi + 1e-12)
+    np.testing.assert_allclose(rotvec_to_matrix(v), R, atol=1e-12)
+    q = matrix_to_quat(R)
+    assert q.shape == (3, 4, 5, 4) and np.all(q[..., 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1, atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(q), R, atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(3 * q), R, atol=1e-12)  # need not be unit
+    theta = 0.7  # scalar first: (cos t/2, 0, 0, sin t/2) turns about +z
+    np.testing.assert_allclose(quat_to_matrix([np.cos(theta / 2), 0, 0, np.sin(theta / 2)]),
+                               _elementary("Z", np.degrees(theta)), atol=1e-15)
+    assert rotvec_to_matrix(np.zeros((0, 3))).shape == (0, 3, 3)
+
+
+def test_slerp_fill_recovers_constant_speed_rotation() -> None:
+    F = 50
+    axis = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    truth = rotvec_to_matrix(np.radians(3.0) * np.arange(F)[:, None] * axis)
+    valid = np.ones(F, dtype=bool)
+    valid[[0, 1, 2, 10, 20, 21, 22, 23, 24, 25, 26, 27, 48, 49]] = False
+    R = truth.copy()
+    R[~valid] = np.nan
+    filled = slerp_fill(R, valid)
+    np.testing.assert_array_equal(filled[valid], truth[valid])
+    inner = ~valid & (np.arange(F) > 2) & (np.arange(F) < 48)
+    np.testing.assert_allclose(filled[inner], truth[inner], atol=1e-12)
+    np.testing.assert_allclose(filled[:3], np.broadcast_to(truth[3], (3, 3, 3)), atol=0)  # held
+    np.testing.assert_allclose(filled[48:], np.broadcast_to(truth[47], (2, 3, 3)), atol=0)
+    assert np.isnan(R[~valid]).all()  # the input is not modified
+    with pytest.raises(ValueError, match="no valid frame"):
+        slerp_fill(R, np.zeros(F, dtype=bool))
+
+
+def test_slerp_fill_takes_the_short_way_round() -> None:
+    a, b = np.eye(3), _elementary("Z", 300.0)  # 300 deg one way = 60 deg the other
+    R = np.stack([a, np.full((3, 3), np.nan), b])
+    mid = slerp_fill(R, np.array([True, False, True]))[1]
+    np.testing.assert_allclose(mid, _elementary("Z", -30.0), atol=1e-12)
+
+
+def test_project_to_so3() -> None:
+    rng = np.random.default_rng(10)
+    R = Rotation.random(100, random_state=rng).as_matrix()
+    np.testing.assert_allclose(project_to_so3(R), R, atol=1e-12)
+    noisy = R + 0.01 * rng.normal(size=R.shape)
+    P = project_to_so3(noisy)
+    np.testing.assert_allclose(np.swapaxes(P, -1, -2) @ P, np.broadcast_to(np.eye(3), P.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(P), 1, atol=1e-12)
+    assert _angle_between(P, R).max() < 3.0
+    # the polar factor: a rotation times a positive diagonal stretch gives the rotation back
+    stretched = R @ np.diag([1.5, 0.7, 2.0])
+    np.testing.assert_allclose(project_to_so3(stretched), R, atol=1e-12)
+    # a reflection becomes a proper rotation; NaN stays NaN, shape kept
+    refl = project_to_so3(np.diag([1.0, 1.0, -1.0]))
+    np.testing.assert_allclose(np.linalg.det(refl), 1, atol=1e-12)
+    batch = np.stack([R[:2], np.full((2, 3, 3), np.nan)])
+    out = project_to_so3(batch)
+    assert out.shape == (2, 2, 3, 3) and np.isnan(out[1]).all()
+    np.testing.assert_allclose(out[0], R[:2], atol=1e-12)
