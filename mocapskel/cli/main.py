@@ -33,7 +33,46 @@ def setup_logging(verbose: int, quiet: bool) -> None:
     log.propagate = False
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+class MocapskelGroup(click.Group):
+    """A click group whose ``main`` turns every error into one line and an exit code.
+
+    Both the console script and click's CliRunner go through here.
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):  # noqa: D102
+        _register()
+        args = list(sys.argv[1:] if args is None else args)
+        try:
+            super().main(args=args, prog_name=prog_name or "mocapskel", standalone_mode=False, **extra)
+        except click.exceptions.Exit as e:
+            sys.exit(e.exit_code)
+        except click.exceptions.Abort:
+            _fail("interrupted — no output was written", 130)
+        except click.UsageError as e:
+            _fail(f"{e.format_message()} (see 'mocapskel {_cmd(args)}--help')", 2)
+        except click.ClickException as e:
+            _fail(e.format_message(), e.exit_code)
+        except MocapskelError as e:
+            if _State.verbose:
+                traceback.print_exc()
+            _fail(str(e), e.exit_code)
+        except KeyboardInterrupt:
+            _fail("interrupted — no output was written", 130)
+        except MemoryError:
+            _fail("out of memory — try a shorter take or fewer markers", 1)
+        except Exception as e:  # anything unexpected
+            if _State.verbose:
+                traceback.print_exc()
+            _fail(f"unexpected {type(e).__name__}: {e} — run with -v for details and report it", 1)
+        sys.exit(0)
+
+
+def _fail(message: str, code: int) -> None:
+    click.echo(f"mocapskel: error: {_one_line(message)}", err=True)
+    sys.exit(code)
+
+
+@click.group(cls=MocapskelGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="mocapskel")
 def cli() -> None:
     """Template-free skeletons from raw optical motion-capture markers.
@@ -48,42 +87,9 @@ def _register() -> None:
     from . import fit, inspect, stages, synth  # noqa: F401  (commands register themselves)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Run the command line; never lets a traceback through unless -v."""
-    _register()
-    args = sys.argv[1:] if argv is None else argv
-    try:
-        cli.main(args=args, prog_name="mocapskel", standalone_mode=False)
-    except click.exceptions.Exit as e:
-        sys.exit(e.exit_code)
-    except click.exceptions.Abort:
-        click.echo("mocapskel: error: interrupted — no output was written", err=True)
-        sys.exit(130)
-    except click.UsageError as e:
-        click.echo(f"mocapskel: error: {e.format_message()} (see 'mocapskel {_cmd(args)}--help')", err=True)
-        sys.exit(2)
-    except click.ClickException as e:
-        click.echo(f"mocapskel: error: {e.format_message()}", err=True)
-        sys.exit(e.exit_code)
-    except MocapskelError as e:
-        if _State.verbose:
-            traceback.print_exc()
-        click.echo(f"mocapskel: error: {_one_line(str(e))}", err=True)
-        sys.exit(e.exit_code)
-    except KeyboardInterrupt:
-        click.echo("mocapskel: error: interrupted — no output was written", err=True)
-        sys.exit(130)
-    except MemoryError:
-        click.echo("mocapskel: error: out of memory — try a shorter take or fewer markers", err=True)
-        sys.exit(1)
-    except Exception as e:  # anything unexpected
-        if _State.verbose:
-            traceback.print_exc()
-        click.echo(
-            f"mocapskel: error: unexpected {type(e).__name__}: {_one_line(str(e))} — run with -v for details and report it",
-            err=True,
-        )
-        sys.exit(1)
+def main() -> None:
+    """Console entry point."""
+    cli.main()
 
 
 def _cmd(args: list[str]) -> str:

@@ -25,7 +25,15 @@ zero). Joint ``s`` sits at ``pos[parent] + G[parent] @ offset[s]`` with
 
 Coordinates: mocapskel works in the lab frame in mm; :func:`lab_to_bvh` and
 :func:`lab_rot_to_bvh` apply the ``--up``/``--units`` rules (up z: axes as in
-the lab; up y: lab (x, y, z) -> BVH (x, z, -y)).
+the lab; up y: lab (x, y, z) -> BVH (x, z, -y)). From a ``Motion`` (global
+rotations relative to a rest pose whose axes are the lab axes) the BVH
+arguments are::
+
+    offset    = lab_to_bvh(skeleton.offset, up, units)
+    root_pos  = lab_to_bvh(motion.root_pos, up, units)
+    local_rot = global_to_local_rot(skeleton.parent, lab_rot_to_bvh(motion.rot, up))
+
+and the rest pose (all channels zero) is the subject at the rest frame.
 """
 from __future__ import annotations
 
@@ -713,10 +721,14 @@ def read_bvh(path: str | os.PathLike) -> tuple[BvhSkeleton, np.ndarray, np.ndarr
 def forward_kinematics(
     skel: BvhSkeleton, root_pos: np.ndarray, local_rot: np.ndarray, *, with_rot: Literal[False] = False
 ) -> np.ndarray: ...
+
+
 @overload
 def forward_kinematics(
     skel: BvhSkeleton, root_pos: np.ndarray, local_rot: np.ndarray, *, with_rot: Literal[True]
 ) -> tuple[np.ndarray, np.ndarray]: ...
+
+
 def forward_kinematics(
     skel: BvhSkeleton, root_pos: np.ndarray, local_rot: np.ndarray, *, with_rot: bool = False
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:

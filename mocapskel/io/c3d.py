@@ -118,6 +118,7 @@ class C3DLayout:
     header_data_start: int
     header_rate: float
     params: dict[str, dict[str, _Param]] = field(default_factory=dict)
+    tail: bytes = b""  # the last 512 bytes of the file
 
     # ----------------------------------------------------------- parameter helpers
     def param(self, group: str, name: str) -> _Param | None:
@@ -199,6 +200,15 @@ class C3DLayout:
         avail = self.file_size - (self.data_start - 1) * 512
         bpf = self.bytes_per_frame
         return max(avail, 0) // bpf if bpf > 0 else 0
+
+    def ends_on_frame(self) -> bool:
+        """Whether the data block ends after a whole frame (or is padded with zeros to a 512-byte block)."""
+        avail = self.file_size - (self.data_start - 1) * 512
+        bpf = self.bytes_per_frame
+        rem = avail % bpf if bpf > 0 and avail > 0 else 0
+        if rem == 0:
+            return True
+        return self.file_size % 512 == 0 and rem <= len(self.tail) and not any(self.tail[-rem:])
 
     @property
     def header_frames(self) -> int:
@@ -360,6 +370,8 @@ def read_layout(path: str | os.PathLike) -> C3DLayout:
             pbuf = f.read(nblocks * 512 - 4)
             if len(pbuf) < nblocks * 512 - 4:
                 raise _bad(f"truncated C3D file (ends inside its parameter section) — {_TO_USER}", spath)
+            f.seek(max(size - 512, 0))
+            tail = f.read(512)
     except OSError as e:
         raise InputError(f"cannot read ({e.strerror or e}) — check the path and the file's permissions", spath) from None
     u16 = ">H" if processor == "mips" else "<H"
@@ -381,6 +393,7 @@ def read_layout(path: str | os.PathLike) -> C3DLayout:
         header_data_start=data_start,
         header_rate=rate,
         params=params,
+        tail=tail,
     )
 
 
@@ -472,9 +485,19 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
         raise InputError("no marker data (the C3D file declares 0 frames) — export the take again with its marker trajectories", spath)
     in_file = lay.frames_in_file
     if in_file == 0:
-        raise InputError(f"truncated C3D file (ends before its first frame; {declared} declared) — {_TO_USER}", spath)
-    if in_file < declared and not (saturated and in_file >= _SATURATED):
-        raise InputError(f"truncated C3D file ({in_file} of {declared} frames present) — {_TO_USER}", spath)
+        raise InputError(f"truncated C3D file (it ends before its first frame; {declared} declared) — {_TO_USER}", spath)
+    if saturated:  # 65535 in a 16-bit field: the data block says how many frames there are
+        if in_file < _SATURATED:
+            raise InputError(f"truncated C3D file ({in_file} of {declared} frames present) — {_TO_USER}", spath)
+        target = in_file
+    elif in_file < declared:
+        if not lay.ends_on_frame():
+            raise InputError(
+                f"truncated C3D file ({in_file} of {declared} frames present, the last one cut) — {_TO_USER}", spath
+            )
+        target = in_file  # the file ends cleanly after its last frame: the frame count lies
+    else:
+        target = declared
 
     # ----- rate
     prate = lay.first_float("POINT", "RATE")
@@ -495,7 +518,7 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
         if engine == "ezc3d":
             xyz, residual = _read_frames_ezc3d(path)
         elif engine == "numpy":
-            n0 = min(declared, in_file)
+            n0 = min(target, _SATURATED) if saturated else target
             xyz, residual = _read_frames_numpy(path, lay, 0, n0)
         else:
             raise ValueError(f"unknown C3D engine {engine!r}")
@@ -508,26 +531,29 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
     if xyz.shape[1] != P:
         raise InputError(f"damaged C3D file (POINT:USED is {P} but {xyz.shape[1]} points were read) — {_TO_USER}", spath)
 
+    if xyz.shape[0] > target:
+        xyz, residual = xyz[:target], residual[:target]
     F = xyz.shape[0]
-    target = declared
-    if saturated:  # 65535 from a 16-bit field: the data block says how many frames there are
-        target = in_file
-    if F < target <= in_file:
+    if F < target:
         txyz, tres = _read_frames_numpy(path, lay, F, target)
         if saturated:  # trailing frames that are all zero bytes are block padding, not frames
             empty = ~((txyz != 0).any(axis=(1, 2)) | (tres != 0).any(axis=1))
             keep = len(empty) - int(np.argmin(empty[::-1])) if not empty.all() else 0
             txyz, tres = txyz[:keep], tres[:keep]
         if len(txyz):
-            warnings.append(
-                f"{F} frames read by ezc3d, {len(txyz)} more read from the data block "
-                f"({source} {'is saturated at 65535' if saturated else f'declares {declared}'})"
-            )
+            why = f"{source} is saturated at 65535" if saturated else f"{source} declares {declared}"
+            warnings.append(f"{F} frames read by {engine}, {len(txyz)} more read from the data block ({why})")
             xyz = np.concatenate([xyz, txyz])
             residual = np.concatenate([residual, tres])
             F = xyz.shape[0]
-    if lay.header_frames and lay.header_frames != F and not (lay.header_last_frame == _SATURATED and F >= _SATURATED):
-        warnings.append(f"header frame range says {lay.header_frames} frames, the data hold {F}; using the data")
+    claims = {}
+    if not saturated and declared != F:
+        claims[source] = declared
+    if lay.header_frames and lay.header_frames != F and lay.header_last_frame != _SATURATED:
+        claims["header frame range"] = lay.header_frames
+    if claims:
+        said = ", ".join(f"{k} {v}" for k, v in claims.items())
+        warnings.append(f"the file declares a different frame count ({said}) than its data block holds ({F}); using the data")
 
     # ----- gaps: negative residual, or exactly (0, 0, 0)
     gap = (residual < 0) | (xyz == 0).all(axis=2)

@@ -238,19 +238,15 @@ def _swing(ref_rot: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 class _Tree:
-    """Topological order and the index tables of the tree-structured normal equations.
-
-    Nodes of the linear system: node 0 is the root position, node ``s + 1`` is
-    segment ``s`` (in topological order). Node 0 is the parent of node 1.
-    """
+    """Breadth-first order of the segments (parents first, depth levels contiguous)."""
 
     def __init__(self, parent: np.ndarray):
         S = len(parent)
         roots = np.flatnonzero(parent < 0)
-        if len(roots) != 1:
-            raise ValueError(f"the skeleton must have exactly one root (parent -1), it has {len(roots)}")
         if np.any(parent >= S) or np.any((parent < 0) & (parent != -1)):
             raise ValueError("parent indices must be -1 or a segment index")
+        if len(roots) != 1:
+            raise ValueError(f"the skeleton must have exactly one root (parent -1), it has {len(roots)}")
         children: list[list[int]] = [[] for _ in range(S)]
         for s, p in enumerate(parent):
             if p >= 0:
@@ -268,53 +264,24 @@ class _Tree:
         self.S = S
         self.par = np.array([inv[parent[o]] if parent[o] >= 0 else -1 for o in order])  # new indices
         self.children = [[int(inv[c]) for c in children[o]] for o in order]
-
-        N = S + 1
-        npar = np.concatenate([[-1], self.par + 1])  # node parents; node 1's parent is node 0
-        npar[1] = 0
-        anc: list[list[int]] = [[]]
-        for j in range(1, N):
-            anc.append(anc[npar[j]] + [int(npar[j])])
-        self.anc = anc  # strict ancestors, root-first
-        qidx = -np.ones((N, N), dtype=int)
-        q = 0
-        for j in range(N):
-            for a in anc[j] + [j]:
-                qidx[a, j] = q
-                q += 1
-        self.Q = q
-        self.qidx = qidx
-        self.q_diag = np.array([qidx[j, j] for j in range(N)])
-        self.q_p = qidx[0, 1:]  # (S,) p-row blocks
-        # segment-segment strict-ancestor pairs (k anc of l), with c = child of k towards l
-        K, L, C = [], [], []
-        for l in range(S):
-            path = [a - 1 for a in anc[l + 1][1:]] + [l]  # segments from root to l
-            for i in range(len(path) - 1):
-                K.append(path[i])
-                L.append(l)
-                C.append(path[i + 1])
-        self.pk, self.pl, self.pc = np.array(K, int), np.array(L, int), np.array(C, int)
-        self.q_kl = qidx[self.pk + 1, self.pl + 1] if K else np.zeros(0, int)
-        # elimination tables per node (leaves first is reverse node order)
-        self.elim = []
-        for j in range(N - 1, 0, -1):
-            a = anc[j]
-            xq = qidx[a, j]
-            ii, kk, tq = [], [], []
-            for i1 in range(len(a)):
-                for k1 in range(i1, len(a)):
-                    ii.append(i1)
-                    kk.append(k1)
-                    tq.append(qidx[a[i1], a[k1]])
-            self.elim.append((j, np.array(a), xq, np.array(ii), np.array(kk), np.array(tq)))
-        # child -> parent incidence (S, S), for summing child terms into parents
-        Pm = np.zeros((S, S))
-        for c in range(S):
-            if self.par[c] >= 0:
-                Pm[c, self.par[c]] = 1.0
-        self.Pm = Pm
-        self.nonroot = np.flatnonzero(self.par >= 0)
+        self.nonroot = np.arange(1, S)
+        depth = np.zeros(S, dtype=int)
+        for s in range(1, S):
+            depth[s] = depth[self.par[s]] + 1
+        bounds = np.flatnonzero(np.diff(depth)) + 1
+        starts = np.concatenate([[0], bounds])
+        ends = np.concatenate([bounds, [S]])
+        self.levels = [slice(int(a), int(b)) for a, b in zip(starts, ends)]
+        # per level > 0: (n_level, n_previous_level) child -> parent incidence
+        self.incidence = [None]
+        for lv in range(1, len(self.levels)):
+            cur, prev = self.levels[lv], self.levels[lv - 1]
+            inc = np.zeros((cur.stop - cur.start, prev.stop - prev.start))
+            inc[np.arange(cur.stop - cur.start), self.par[cur] - prev.start] = 1.0
+            self.incidence.append(inc)
+        self.path = []  # segments from the root to s, inclusive
+        for s in range(S):
+            self.path.append((self.path[self.par[s]] if s else []) + [s])
 
 
 # --------------------------------------------------------------------------- the model
@@ -324,14 +291,13 @@ class _Model:
     """Marker model on a reordered tree, with the per-iteration kernels.
 
     Layouts: rotations ``R`` (S, F, 3, 3) and segment quantities (S, F, ...)
-    segment-major; marker quantities (F, 3, M) with markers last, so that
-    sums over a segment's markers are one matrix product.
+    segment-major; markers in per-segment slots, (S, F, 3, K) with K the most
+    markers on one segment (padding slots have weight 0).
     """
 
     def __init__(self, tree: _Tree, origin: np.ndarray, seg: np.ndarray, local: np.ndarray):
         self.t = tree
         S = tree.S
-        M = len(seg)
         self.origin = origin
         off = np.zeros((S, 3))
         nr = tree.nonroot
@@ -339,110 +305,136 @@ class _Model:
         self.off = off
         self.seg = seg  # (M,) segment of every used marker
         self.local = local  # (M, 3)
-        self.E = np.zeros((M, S))
-        self.E[np.arange(M), seg] = 1.0
         self.members = [np.flatnonzero(seg == s) for s in range(S)]
-        # per-segment sums of constant marker terms: w @ K3 -> sum_m w l_m, w @ K9 -> sum_m w l_m l_m^T
-        self.K3 = (self.E[:, :, None] * local[:, None, :]).reshape(M, S * 3)
-        self.K9 = (self.E[:, :, None] * (local[:, :, None] * local[:, None, :]).reshape(M, 1, 9)).reshape(M, S * 9)
+        K = max(1, max(len(ms) for ms in self.members))
+        self.K = K
+        self.slot = np.zeros(len(seg), dtype=int)
+        lp = np.zeros((S, K, 3))
+        for s, ms in enumerate(self.members):
+            self.slot[ms] = np.arange(len(ms))
+            lp[s, : len(ms)] = local[ms]
+        self.lpT = np.ascontiguousarray(lp.transpose(0, 2, 1))  # (S, 3, K)
+        self.lp = lp  # (S, K, 3)
+        self.lout = (lp[..., :, None] * lp[..., None, :]).reshape(S, K, 9)
+
+    def pack(self, a: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(F, M, ...) marker array -> (S, F, ..., K) slots."""
+        out = np.full((self.t.S, self.K) + a.shape[:1] + a.shape[2:], fill, dtype=float)
+        out[self.seg, self.slot] = np.moveaxis(a, 1, 0)
+        return np.ascontiguousarray(np.moveaxis(out, 1, -1))
+
+    def unpack(self, a: np.ndarray) -> np.ndarray:
+        """(S, F, K) slots -> (F, M)."""
+        return a[self.seg, :, self.slot].T
 
     def fk(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bone vectors G (S, F, 3) (G[c] from parent(c) to c, 0 for the root),
-        origins P (S, F, 3) and marker levers L (F, 3, M)."""
+        """Bone vectors G (S, F, 3) (G[c] from parent(c)'s origin to c's, 0 for the root),
+        origins P (S, F, 3) and marker levers L = R l (S, F, 3, K)."""
         t = self.t
-        F = p.shape[0]
-        G = np.zeros((t.S, F, 3))
-        nr = t.nonroot
-        if nr.size:
-            G[nr] = (R[t.par[nr]] @ self.off[nr][:, None, :, None])[..., 0]
-        P = np.empty((t.S, F, 3))
+        S, F = R.shape[:2]
+        G = np.zeros((S, F, 3))
+        if S > 1:
+            G[1:] = (R[t.par[1:]] @ self.off[1:, None, :, None])[..., 0]
+        P = np.empty((S, F, 3))
         P[0] = p
-        for s in nr:
+        for s in range(1, S):
             P[s] = P[t.par[s]] + G[s]
-        L = np.empty((F, 3, len(self.seg)))
-        for s, ms in enumerate(self.members):
-            if ms.size:
-                L[:, :, ms] = R[s] @ self.local[ms].T
+        L = (R.reshape(S, F * 3, 3) @ self.lpT).reshape(S, F, 3, self.K)
         return G, P, L
 
     def residual(
         self, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """FK and residuals r = x - y (F, 3, M); data cost (F,)."""
+        """FK, residuals r = x - y (S, F, 3, K) and the data cost (F,)."""
         G, P, L = self.fk(p, R)
-        r = P.transpose(1, 2, 0)[:, :, self.seg] + L - y
-        cost = (w * (r * r).sum(1)).sum(1)
+        r = L + P[..., None]
+        r -= y
+        cost = np.einsum("sfk,sfk->f", w, (r * r).sum(2))
         return G, L, r, cost
 
-    def normal_equations(
-        self, R: np.ndarray, G: np.ndarray, L: np.ndarray, r: np.ndarray, w: np.ndarray, e: np.ndarray, pw: float
+    def step(
+        self,
+        R: np.ndarray,
+        G: np.ndarray,
+        L: np.ndarray,
+        r: np.ndarray,
+        w: np.ndarray,
+        e: np.ndarray,
+        pw: float,
+        lam: np.ndarray,
+        floor: float,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Blocks H (Q, F, 3, 3) of J^T W J + pw I and right-hand side g (N, F, 3) of J^T W r + pw e."""
-        t = self.t
-        S = t.S
-        F, _, M = r.shape
-        E = self.E
+        """One damped Gauss-Newton step: (dp (F, 3), drot (S, F, 3)).
 
-        def segsum(a: np.ndarray) -> np.ndarray:  # (F, 3, M) -> (S, F, 3)
-            return (a.reshape(F * 3, M) @ E).reshape(F, 3, S).transpose(2, 0, 1)
-
-        W_sub = np.ascontiguousarray((w @ E).T)  # (S, F)
-        Cw = (w @ self.K9).reshape(F, S, 3, 3).transpose(1, 0, 2, 3)
-        Rt = np.swapaxes(R, -1, -2)
-        N = R @ Cw @ Rt  # sum w L L^T over own markers
-        B = (R @ (w @ self.K3).reshape(F, S, 3).transpose(1, 0, 2)[..., None])[..., 0]  # sum w L
-        wr = w[:, None, :] * r
-        Rs_sub = segsum(wr)  # sum w r
-        L0, L1, L2 = L[:, 0], L[:, 1], L[:, 2]
-        r0, r1, r2 = wr[:, 0], wr[:, 1], wr[:, 2]
-        T = segsum(np.stack([L1 * r2 - L2 * r1, L2 * r0 - L0 * r2, L0 * r1 - L1 * r0], 1))  # sum w L x r
-        # subtree sums, children before parents
-        for s in t.nonroot[::-1]:
-            W_sub[t.par[s]] += W_sub[s]
-            Rs_sub[t.par[s]] += Rs_sub[s]
-        # child terms: a child's subtree hangs on the parent through the bone G_c
-        WG = W_sub[..., None] * G
-        Pm = t.Pm
-        B += np.tensordot(Pm, WG, axes=(0, 0))
-        N += np.tensordot(Pm, WG[..., :, None] * G[..., None, :], axes=(0, 0))
-        T += np.tensordot(Pm, np.cross(G, Rs_sub), axes=(0, 0))
-
-        H = np.empty((t.Q, F, 3, 3))
-        I3 = np.eye(3)
-        tr = N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2]
-        H[t.q_diag[1:]] = (tr + pw)[..., None, None] * I3 - N
-        H[t.q_diag[0]] = W_sub[0][:, None, None] * I3
-        H[t.q_p] = -_hat(B)
-        if t.pk.size:
-            a = G[t.pc]  # (Q2, F, 3)
-            b = B[t.pl]
-            H[t.q_kl] = (a * b).sum(-1)[..., None, None] * I3 - b[..., :, None] * a[..., None, :]
-        g = np.empty((S + 1, F, 3))
-        g[0] = Rs_sub[0]
-        g[1:] = T + pw * e
-        return H, g
-
-    def solve(self, H: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """Solve the tree-structured system H x = g by block elimination, leaves first.
-
-        H (Q, F, 3, 3) and g (N, F, 3) are overwritten. Returns x (N, F, 3).
-        No fill-in: eliminating a node only updates blocks between its ancestors.
+        Solves ``(J^T W J + pw I + damping) d = -(J^T W r + pw e)`` exactly, in
+        O(S) 3x3 operations per frame: the unknowns are the root position and
+        one rotation increment per segment; writing every segment's origin
+        increment ``dP_s`` as an intermediate, a segment's own terms involve only
+        ``(dP_s, d_s)`` and a child's origin increment is ``dP_c = dP_s - G_c x d_s``.
+        Leaves first, each segment's rotation increment is eliminated, leaving
+        a 3x3 quadratic in ``dP_s`` that is pushed onto the parent through
+        ``[I, -[G_c]x]``; the root's 3x3 system gives ``dp``; then top-down
+        back-substitution. The Levenberg-Marquardt damping adds
+        ``lam * diag`` to every segment's (effective) rotation block and to
+        the root position block.
         """
         t = self.t
-        saved = []
-        for j, anc, xq, ii, kk, tq in t.elim:
-            Dinv = _inv3(H[t.q_diag[j]])  # (F, 3, 3)
-            X = H[xq]  # (d, F, 3, 3): blocks (a, j)
-            Yb = Dinv @ np.swapaxes(X, -1, -2)  # D^-1 H_(j, a)
-            yg = (Dinv @ g[j][..., None])[..., 0]
-            H[tq] -= X[ii] @ Yb[kk]
-            g[anc] -= (X @ yg[..., None])[..., 0]
-            saved.append((j, anc, Yb, yg))
-        x = np.empty_like(g)
-        x[0] = (_inv3(H[t.q_diag[0]]) @ g[0][..., None])[..., 0]
-        for j, anc, Yb, yg in reversed(saved):
-            x[j] = yg - (Yb @ x[anc][..., None])[..., 0].sum(0)
-        return x
+        S, F = R.shape[:2]
+        I3 = np.eye(3)
+        wr = w[:, :, None, :] * r  # (S, F, 3, K)
+        gP = wr.sum(-1)  # (S, F, 3)
+        L0, L1, L2 = L[:, :, 0], L[:, :, 1], L[:, :, 2]
+        r0, r1, r2 = wr[:, :, 0], wr[:, :, 1], wr[:, :, 2]
+        gd = np.stack([(L1 * r2 - L2 * r1).sum(-1), (L2 * r0 - L0 * r2).sum(-1), (L0 * r1 - L1 * r0).sum(-1)], -1)
+        gd += pw * e
+        W = w.sum(-1)  # (S, F)
+        Cw = (w @ self.lout).reshape(S, F, 3, 3)  # sum w l l^T
+        N = R @ Cw @ np.ascontiguousarray(np.swapaxes(R, -1, -2))  # sum w L L^T
+        A = (R @ (w @ self.lp)[..., None])[..., 0]  # sum w L
+        HPP = W[..., None, None] * I3
+        HPd = -_hat(A)
+        Hdd = (N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2] + pw)[..., None, None] * I3 - N
+
+        Dinv = np.empty_like(Hdd)
+        for lv in range(len(t.levels) - 1, -1, -1):
+            sl = t.levels[lv]
+            la = lam[None, :, None]
+            dd = np.einsum("sfii->sfi", Hdd[sl])
+            Hdd[sl] += (la * dd + floor)[..., None] * I3
+            Di = _inv3(Hdd[sl])
+            Dinv[sl] = Di
+            Z = HPd[sl] @ Di
+            K = HPP[sl] - Z @ np.swapaxes(HPd[sl], -1, -2)
+            k = gP[sl] - (Z @ gd[sl][..., None])[..., 0]
+            if lv == 0:
+                K0 = K[0] + (lam[:, None] * np.einsum("fii->fi", K[0]) + floor)[..., None] * I3
+                xP0 = (_inv3(K0) @ k[0][..., None])[..., 0]
+                break
+            Gh = _hat(G[sl])
+            KG = K @ Gh
+            inc = t.incidence[lv]
+            prev = t.levels[lv - 1]
+            n = sl.stop - sl.start
+
+            def push(target: np.ndarray, val: np.ndarray) -> None:
+                target[prev] += np.tensordot(inc, val.reshape(n, -1), axes=(0, 0)).reshape(target[prev].shape)
+
+            push(HPP, K)
+            push(HPd, -KG)
+            push(Hdd, -(Gh @ KG))
+            push(gP, k)
+            push(gd, np.cross(G[sl], k))
+        # back-substitution, root first
+        xP = np.empty((S, F, 3))
+        xd = np.empty((S, F, 3))
+        xP[0] = xP0
+        for sl in t.levels:
+            if sl.start > 0:
+                pr = t.par[sl]
+                xP[sl] = xP[pr] - np.cross(G[sl], xd[pr])
+            rhs = gd[sl] - (np.swapaxes(HPd[sl], -1, -2) @ xP[sl][..., None])[..., 0]
+            xd[sl] = (Dinv[sl] @ rhs[..., None])[..., 0]
+        return -xP0, -xd
 
 
 def _dense_system(
@@ -450,22 +442,27 @@ def _dense_system(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reference normal equations from a dense Jacobian: H (F, n, n), g (F, n), n = 3 + 3S.
 
-    Only for tests and benchmarks (memory grows as F * M * S).
+    Only for tests and benchmarks (memory grows as F * M * S). ``y`` and ``w``
+    are in slot layout, ``R`` is (S, F, 3, 3), ``e`` is (S, F, 3).
     """
     t = model.t
-    F, S, M = p.shape[0], t.S, len(model.seg)
+    S, F = R.shape[:2]
     G, L, r, _ = model.residual(p, R, y, w)
-    J = np.zeros((F, M, 3, S + 1, 3))
-    J[:, :, :, 0, :] = np.eye(3)
-    for m in range(M):
-        s = model.seg[m]
-        path = [a - 1 for a in t.anc[s + 1][1:]] + [s]
-        for i, k in enumerate(path):
-            u = L[:, :, m] if k == s else G[path[i + 1]]
-            J[:, m, :, k + 1, :] = -_hat(u)
-    J = J.reshape(F, 3 * M, 3 * (S + 1))
-    wv = np.repeat(w, 3, axis=1)
-    rv = r.transpose(0, 2, 1).reshape(F, 3 * M)
+    rows_J, rows_r, rows_w = [], [], []
+    for s in range(S):
+        for k in range(model.K):
+            J = np.zeros((F, 3, S + 1, 3))
+            J[:, :, 0, :] = np.eye(3)
+            path = t.path[s]
+            for i, a in enumerate(path):
+                u = L[s, :, :, k] if a == s else G[path[i + 1]]
+                J[:, :, a + 1, :] = -_hat(u)
+            rows_J.append(J.reshape(F, 3, 3 * (S + 1)))
+            rows_r.append(r[s, :, :, k])
+            rows_w.append(np.repeat(w[s, :, k, None], 3, axis=1))
+    J = np.concatenate(rows_J, axis=1)
+    rv = np.concatenate(rows_r, axis=1)
+    wv = np.concatenate(rows_w, axis=1)
     H = np.einsum("fki,fk,fkj->fij", J, wv, J)
     g = np.einsum("fki,fk->fi", J, wv * rv)
     H[:, 3:, 3:] += pw * np.eye(3 * S)
@@ -476,8 +473,10 @@ def _dense_system(
 # --------------------------------------------------------------------------- initialisation
 
 
-def _initial_rotations(model: _Model, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Data-driven rotations (F, S, 3, 3) for every segment and frame (all finite).
+
+    ``yt`` (F, M, 3) observed markers, ``w`` (F, M) weights (0 where unseen).
 
     1. Kabsch of each segment's visible markers (>= 3, not collinear).
     2. Twice, for frames still unsolved: Kabsch of the segment's markers plus
@@ -491,8 +490,7 @@ def _initial_rotations(model: _Model, y: np.ndarray, w: np.ndarray) -> np.ndarra
        rotation that matches that direction.
     """
     t = model.t
-    F, S = y.shape[0], t.S
-    yt = y.transpose(0, 2, 1)  # (F, M, 3)
+    F, S = yt.shape[0], t.S
     rest = model.origin[model.seg] + model.local  # (M, 3)
     Pmax = max((len(ms) for ms in model.members), default=0)
     # step 1, all segments in one batched call (padding has weight 0)
@@ -566,12 +564,13 @@ def _initial_rotations(model: _Model, y: np.ndarray, w: np.ndarray) -> np.ndarra
 
 def _root_from_rotations(model: _Model, R: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Root position (F, 3) given rotations R (S, F, 3, 3): the weighted mean of the
-    observed markers minus the FK at p = 0; frames without markers interpolated."""
+    observed markers minus the FK at p = 0; frames without markers interpolated.
+    ``y`` (S, F, 3, K) and ``w`` (S, F, K) in slot layout."""
     F = R.shape[1]
     _, P, L = model.fk(np.zeros((F, 3)), R)
-    x0 = P.transpose(1, 2, 0)[:, :, model.seg] + L
-    W = w.sum(1)
-    p = np.einsum("fm,fim->fi", w, y - x0) / np.where(W > 0, W, 1.0)[:, None]
+    d = y - L - P[..., None]
+    W = w.sum((0, 2))
+    p = np.einsum("sfk,sfik->fi", w, d) / np.where(W > 0, W, 1.0)[:, None]
     return _interp_fill(p, W > 0)
 
 
@@ -695,14 +694,14 @@ def solve_ik(
     w = np.where(seen, w, 0.0)
     if F == 0 or not np.any(w > 0):
         raise ValueError("no marker on any segment is seen in any frame: nothing to solve")
-    y = np.where(seen[..., None], y, 0.0).transpose(0, 2, 1).copy()  # (F, 3, M)
+    yt = np.where(seen[..., None], y, 0.0)  # (F, M, 3)
     pw = float(prior_weight)
     if pw < 0 or damping < 0:
         raise ValueError("prior_weight and damping must be non-negative")
 
     # prior and starting point; internally rotations are segment-major (S, F, 3, 3)
     if prior_rot is None:
-        R_prior = _initial_rotations(model, y, w)
+        R_prior = _initial_rotations(model, yt, w)
     else:
         prior_rot = np.asarray(prior_rot, dtype=float)
         if prior_rot.shape != (F, S, 3, 3) or not np.isfinite(prior_rot).all():
@@ -716,6 +715,8 @@ def solve_ik(
         if init_rot.shape != (F, S, 3, 3) or not np.isfinite(init_rot).all():
             raise ValueError(f"init_rot must be finite, ({F}, {S}, 3, 3)")
         R = np.ascontiguousarray(_project_so3(init_rot[:, tree.perm]).transpose(1, 0, 2, 3))
+    y = model.pack(yt)  # (S, F, 3, K)
+    w = model.pack(w)  # (S, F, K)
     if init_root is None:
         p = _root_from_rotations(model, R, y, w)
     else:
@@ -728,13 +729,12 @@ def solve_ik(
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
     floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
 
-    R_prior_T = np.swapaxes(R_prior, -1, -2)
+    R_prior_T = np.ascontiguousarray(np.swapaxes(R_prior, -1, -2))
     G, L, r, cost = model.residual(p, R, y, w)
     e = _log(R @ R_prior_T)  # (S, F, 3)
-    cost = cost + pw * (e * e).sum((0, 2))
+    cost += pw * (e * e).sum((0, 2))
     lam = np.full(F, float(damping))
     converged = np.zeros(F, dtype=bool)
-    I3 = np.eye(3)
     n_iter = 0
     for _ in range(int(iterations)):
         if converged.all():
@@ -742,34 +742,31 @@ def solve_ik(
         n_iter += 1
         if converged.any():
             act = np.flatnonzero(~converged)
-            pa, Ra, Ga, La, ra, ea, wa, ya = p[act], R[:, act], G[:, act], L[act], r[act], e[:, act], w[act], y[act]
-            RpT = R_prior_T[:, act]
+            pa, Ra, Ga, La, ra, ea = p[act], R[:, act], G[:, act], L[:, act], r[:, act], e[:, act]
+            wa, ya, RpT = w[:, act], y[:, act], R_prior_T[:, act]
         else:
             act = slice(None)
             pa, Ra, Ga, La, ra, ea, wa, ya, RpT = p, R, G, L, r, e, w, y, R_prior_T
-        H, g = model.normal_equations(Ra, Ga, La, ra, wa, ea, pw)
-        dd = np.einsum("nfii->nfi", H[tree.q_diag])
-        H[tree.q_diag] += (lam[act][:, None] * dd + floor)[..., None] * I3
-        x = model.solve(H, g)
-        dp = -x[0]
-        dr = -x[1:]  # (S, A, 3)
+        dp, dr = model.step(Ra, Ga, La, ra, wa, ea, pw, lam[act], floor)
         p_new = pa + dp
         R_new = _exp(dr) @ Ra
         G2, L2, r2, c2 = model.residual(p_new, R_new, ya, wa)
         e2 = _log(R_new @ RpT)
-        c2 = c2 + pw * (e2 * e2).sum((0, 2))
+        c2 += pw * (e2 * e2).sum((0, 2))
         ok = c2 <= cost[act] * (1 + 1e-12)
         step = np.maximum(np.abs(dp).max(1), scale * np.abs(dr).max((0, 2)))
-        idx = np.arange(F)[act][ok]
-        p[idx], R[:, idx], G[:, idx], L[idx], r[idx], e[:, idx], cost[idx] = (
-            p_new[ok], R_new[:, ok], G2[:, ok], L2[ok], r2[ok], e2[:, ok], c2[ok]
-        )
+        if ok.all() and isinstance(act, slice):
+            p, R, G, L, r, e, cost = p_new, R_new, G2, L2, r2, e2, c2
+        else:
+            idx = np.arange(F)[act][ok]
+            p[idx], R[:, idx], G[:, idx], L[:, idx], r[:, idx], e[:, idx], cost[idx] = (
+                p_new[ok], R_new[:, ok], G2[:, ok], L2[:, ok], r2[:, ok], e2[:, ok], c2[ok]
+            )
         lam[act] = np.where(ok, np.maximum(lam[act] * 0.3, 1e-12), lam[act] * 10)
         converged[act] = step <= tol
 
     res = np.full((F, M), np.nan)
-    dist = np.linalg.norm(r, axis=1)
-    res[:, used] = np.where(seen, dist, np.nan)
+    res[:, used] = np.where(seen, model.unpack(np.sqrt((r * r).sum(2))), np.nan)
     rot = np.empty((F, S, 3, 3))
     rot[:, tree.perm] = R.transpose(1, 0, 2, 3)
     return IKResult(root_pos=p, rot=rot, residual=res, n_iter=n_iter, converged=converged)

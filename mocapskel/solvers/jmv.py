@@ -245,24 +245,28 @@ def _four_point_init(q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     return c_full, np.concatenate([[s0], s0 + delta])
 
 
-def algebraic_init(points: ArrayLike) -> np.ndarray | None:
-    """(F, 3) closed-form joint guess from points of two groups without a basis.
+def algebraic_init(markers_a: ArrayLike, markers_b: ArrayLike) -> np.ndarray | None:
+    """(F, 3) closed-form joint guess for two groups without a basis.
 
-    Takes the four points (all seen in at least 12 frames) whose tetrahedra
-    have the largest median volume and applies the exact four-point solution
-    (see ``_four_point_init``); NaN in frames where those four are not seen or
-    are (nearly) coplanar. ``None`` when fewer than 4 points or the solution
-    is undetermined.
+    Takes the four points, two from each group when possible (at least one),
+    seen together in at least 12 frames, whose tetrahedra have the largest
+    median volume, and applies the exact four-point solution (see
+    ``_four_point_init``); NaN in frames where those four are not seen or are
+    (nearly) coplanar. ``None`` when there are fewer than 4 points or the
+    solution is undetermined.
     """
     from itertools import combinations
 
-    pts = _as_points(points, "points")
+    pts = _stack(markers_a, markers_b)
+    na = np.asarray(markers_a).shape[1]
     F, M, _ = pts.shape
-    if M < 4:
+    if M < 4 or na == 0 or na == M:
         return None
     vis = np.isfinite(pts).all(-1)
     best, best_vol = None, 0.0
-    combos = list(combinations(range(M), 4))
+    combos = [cb for cb in combinations(range(M), 4) if 0 < sum(i < na for i in cb) < 4]
+    two = [cb for cb in combos if sum(i < na for i in cb) == 2]
+    combos = two or combos
     if len(combos) > 70:
         combos = combos[:: len(combos) // 70 + 1]
     for cb in combos:
@@ -304,9 +308,8 @@ def _fill_holes(c: np.ndarray, fallback: np.ndarray, max_gap: int = 10) -> np.nd
     return out
 
 
-def _auto_init(a: np.ndarray, b: np.ndarray, alpha: float) -> tuple[np.ndarray, str]:
-    """MTB closed form from the better side when a side has a basis, else the algebraic
-    four-point solution, else the nearest midpoint."""
+def _mtb_init(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray | None:
+    """MTB joint from the side whose fit has the lower Q; None when no side has a basis."""
     from .mtb import mtb_basis, mtb_joint  # local: mtb imports this module
 
     best: JointFit | None = None
@@ -317,12 +320,7 @@ def _auto_init(a: np.ndarray, b: np.ndarray, alpha: float) -> tuple[np.ndarray, 
                 fit = mtb_joint(basis.points, a, b, alpha=alpha)
                 if fit and (best is None or fit.cost < best.cost):
                     best = fit
-    if best is not None:
-        return _fill_holes(best.centre, nearest_midpoint(a, b)), "mtb"
-    guess = algebraic_init(np.concatenate([a, b], axis=1))
-    if guess is not None and np.isfinite(guess).all(-1).mean() > 0.5:
-        return _fill_holes(guess, nearest_midpoint(a, b)), "algebraic"
-    return nearest_midpoint(a, b), "nearest"
+    return None if best is None else best.centre
 
 
 # --------------------------------------------------------------------------- JMV
@@ -351,10 +349,14 @@ def jmv_joint(
         joints) of the two segments; NaN where not seen.
     alpha : float
         Mean-distance penalty of Q (length units); 0 for the final fit.
-    init : (F, 3) ndarray or {"auto", "mtb", "nearest"}, optional
-        Starting joint trajectory. ``None``/``"auto"``: the MTB closed form when
-        one group has three non-collinear markers, else the midpoint of the two
-        closest markers of the two groups. NaN rows are filled with the latter.
+    init : (F, 3) ndarray or {"auto", "mtb", "algebraic", "nearest"}, optional
+        Starting joint trajectory. "mtb": the MTB closed form (needs a group
+        with three non-collinear markers); "algebraic": the exact four-point
+        closed form of :func:`algebraic_init`; "nearest": the midpoint of the
+        two closest markers of the two groups. ``None``/"auto": "mtb" when
+        possible, else both "algebraic" and "nearest" are run and the lower Q
+        kept. Holes (NaN rows) of a start are interpolated over short gaps and
+        filled from "nearest" elsewhere.
     max_iter : int
         Iteration limit.
     tol : float
@@ -382,28 +384,51 @@ def jmv_joint(
     if not active.any():
         return JointFit(nan, np.inf, 0, False, "no frame sees 3 markers of the two groups")
 
+    near = nearest_midpoint(a, b)
+    starts: list[np.ndarray] = []
     if init is None or isinstance(init, str):
         mode = "auto" if init is None else init
-        if mode == "nearest":
-            c0 = nearest_midpoint(a, b)
-        elif mode in ("auto", "mtb"):
-            c0, got = _auto_init(a, b, alpha)
-            if mode == "mtb" and got != "mtb":
-                return JointFit(nan, np.inf, 0, False, "init='mtb' but neither group has 3 non-collinear markers")
-        else:
+        if mode not in ("auto", "mtb", "algebraic", "nearest"):
             raise ValueError(f"unknown init {init!r}")
+        from_mtb = False
+        if mode in ("auto", "mtb"):
+            guess = _mtb_init(a, b, alpha)
+            if guess is not None:
+                starts.append(_fill_holes(guess, near))
+                from_mtb = True
+            elif mode == "mtb":
+                return JointFit(nan, np.inf, 0, False, "init='mtb' but neither group has 3 non-collinear markers")
+        if mode == "algebraic" or (mode == "auto" and not starts):
+            guess = algebraic_init(a, b)
+            if guess is not None and np.isfinite(guess).all(-1).mean() > 0.5:
+                starts.append(_fill_holes(guess, near))
+            elif mode == "algebraic":
+                return JointFit(nan, np.inf, 0, False, "no closed-form four-point solution (too few points or frames)")
+        if mode == "nearest" or (mode == "auto" and not from_mtb):
+            starts.append(near)  # auto without a basis: also from here, keep the lower Q
     else:
         c0 = np.array(init, dtype=float)
         if c0.shape != (F, 3):
             raise ValueError(f"init must be ({F}, 3), got {c0.shape}")
-        hole = ~np.isfinite(c0).all(-1)
-        if hole.any():
-            c0[hole] = nearest_midpoint(a, b)[hole]
-    active &= np.isfinite(c0).all(-1)
+        starts.append(_fill_holes(c0, near))
 
-    c, q, n_iter, converged, radii = _jmv_lm(c0[active], pts[active], vis[active], alpha, max_iter, tol)
+    spread = pts - np.nanmean(pts, axis=(0, 1))
+    scale2 = float(np.nanmean(np.einsum("fmi,fmi->fm", spread, spread))) if np.isfinite(pts).any() else 1.0
+    best = None
+    for c0 in starts:
+        act = active & np.isfinite(c0).all(-1)
+        if not act.any():
+            continue
+        c, q, n_iter, converged, radii = _jmv_lm(c0[act], pts[act], vis[act], alpha, max_iter, tol)
+        if best is None or q < best[1]:
+            best = (act, q, n_iter, converged, radii, c)
+        if q - alpha * alpha / 4.0 <= 1e-26 * max(scale2, 1e-300):
+            break  # an exact fit: no other start can do better
+    if best is None:
+        return JointFit(nan, np.inf, 0, False, "no usable starting point")
+    act, q, n_iter, converged, radii, c = best
     centre = nan.copy()
-    centre[active] = c
+    centre[act] = c
     ok = converged and np.isfinite(q)
     return JointFit(centre, q, n_iter, ok, "" if ok else "iteration limit reached before convergence", None, radii)
 

@@ -163,17 +163,29 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
     s = float(np.sqrt((Xref**2).sum(1).mean()))
 
     out = np.full((F, 4, 3), np.nan)
-    pats, inv = np.unique(vis, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    for p, vmask in enumerate(pats):
+    if full.size == F:
+        patterns = [(np.ones(N, bool), None)]
+    else:
+        code = vis.astype(np.int64) @ (np.int64(1) << np.arange(N, dtype=np.int64)) if N < 63 else None
+        if code is None:  # pragma: no cover - groups of 63+ points
+            pats, inv = np.unique(vis, axis=0, return_inverse=True)
+            inv = inv.reshape(-1)
+        else:
+            ucode, inv = np.unique(code, return_inverse=True)
+            pats = ((ucode[:, None] >> np.arange(N)) & 1).astype(bool)
+        patterns = [(vm, np.flatnonzero(inv == p)) for p, vm in enumerate(pats)]
+    for vmask, fr in patterns:
         if vmask.sum() < 3:
             continue
         co = _frame_coeffs(Xref, vmask, axes, s, tol)
         if co is None:
             continue
         G, beta = co
-        fr = np.flatnonzero(inv == p)
-        PV = P[fr][:, vmask]  # (f, nv, 3)
+        PV = P if fr is None else P[fr]
+        if not vmask.all():
+            PV = PV[:, vmask]  # (f, nv, 3)
+        if fr is None:
+            fr = slice(None)
         oV = PV.mean(1)
         b12 = np.einsum("fji,jk->fik", PV - oV[:, None], G)  # (f, 3, 2)
         b3 = np.cross(b12[:, :, 0], b12[:, :, 1])

@@ -106,11 +106,11 @@ def matrix_to_euler(R: np.ndarray, order: str = "ZXY") -> np.ndarray:
     """Intrinsic Euler angles (BVH convention) of rotation matrices.
 
     The middle angle is in [-90, 90] and the others in [-180, 180]. The first
-    angle is found from the matrix's last column and the third from the
-    first one after removing it (Mike Day's method), so the result reproduces
-    ``R`` even at and near gimbal lock; at exact lock (``cos b < 1e-12``) the
-    first angle is set to 0 and the third carries the whole rotation. Never NaN
-    for finite input.
+    and middle angles come from column ``order[2]`` of ``R``; the third from
+    ``R_{order[0]}(a)^T R`` (Mike Day's method), so the result reproduces ``R``
+    to rounding even at and near gimbal lock. At lock (``cos b < 1e-12``) the
+    first angle is set to 0 and the third carries the whole rotation. Never
+    NaN for finite input.
 
     Parameters
     ----------

@@ -286,10 +286,17 @@ def _truncated(sy: _System, drop: int) -> np.ndarray:
     return vec @ ((vec.T @ sy.rhs) / lam)
 
 
+def _rotate(R: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """R[f] @ x (x (3,) or (F, 3)) for all frames, by columns (faster than einsum for 3x3)."""
+    if x.ndim == 1:
+        return R[:, :, 0] * x[0] + R[:, :, 1] * x[1] + R[:, :, 2] * x[2]
+    return R[:, :, 0] * x[:, 0:1] + R[:, :, 1] * x[:, 1:2] + R[:, :, 2] * x[:, 2:3]
+
+
 def _images(sy: _System, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lab positions of local points p1 (segment 1) and p2 (segment 2), NaN where invalid."""
-    q1 = np.einsum("fij,j->fi", sy.R1, p1) + sy.t1
-    q2 = np.einsum("fij,j->fi", sy.R2, p2) + sy.t2
+    q1 = _rotate(sy.R1, p1) + sy.t1
+    q2 = _rotate(sy.R2, p2) + sy.t2
     q1[~sy.valid] = np.nan
     q2[~sy.valid] = np.nan
     return q1, q2
@@ -362,7 +369,7 @@ def _hinge_solution(sy: _System, markers1: np.ndarray, markers2: np.ndarray) -> 
     g = (k1 * g1 + k2 * g2) / (k1 + k2)  # lab centroid of all markers
     p1, p2 = _images(sy, x0[:3], x0[3:])
     p0 = 0.5 * (p1 + p2)
-    u = 0.5 * (np.einsum("fij,j->fi", sy.R1, v[:3]) + np.einsum("fij,j->fi", sy.R2, v[3:]))[sy.valid]
+    u = 0.5 * (_rotate(sy.R1, v[:3]) + _rotate(sy.R2, v[3:]))[sy.valid]
     wv = sy.w[sy.valid]
     den = np.sum(wv * np.einsum("fi,fi->f", u, u))
     alpha = np.sum(wv * np.einsum("fi,fi->f", u, (g - p0)[sy.valid])) / den
@@ -537,8 +544,8 @@ def sara(
     diff = q1 - q2
     residual = np.sqrt(np.einsum("fi,fi->f", diff, diff))
     rms = float(np.sqrt(np.sum(sy.w[sy.valid] * residual[sy.valid] ** 2)))
-    e1 = np.einsum("fij,j->fi", sy.R1, a1)
-    e2 = np.einsum("fij,j->fi", sy.R2, a2)
+    e1 = _rotate(sy.R1, a1)
+    e2 = _rotate(sy.R2, a2)
     s = e1 + e2
     axis = s / np.linalg.norm(s, axis=1, keepdims=True).clip(1e-300)
     angle = 2 * np.arctan2(np.linalg.norm(e1 - e2, axis=1), np.linalg.norm(s, axis=1))
@@ -555,43 +562,139 @@ def sara(
 # poses from markers
 
 
+def _minors(a):
+    """2x2 minors of rows (0, 1) and of rows (2, 3) of 4x4 matrices a[i][j] (arrays)."""
+    s = (
+        a[0][0] * a[1][1] - a[1][0] * a[0][1], a[0][0] * a[1][2] - a[1][0] * a[0][2],
+        a[0][0] * a[1][3] - a[1][0] * a[0][3], a[0][1] * a[1][2] - a[1][1] * a[0][2],
+        a[0][1] * a[1][3] - a[1][1] * a[0][3], a[0][2] * a[1][3] - a[1][2] * a[0][3],
+    )
+    c = (
+        a[2][0] * a[3][1] - a[3][0] * a[2][1], a[2][0] * a[3][2] - a[3][0] * a[2][2],
+        a[2][0] * a[3][3] - a[3][0] * a[2][3], a[2][1] * a[3][2] - a[3][1] * a[2][2],
+        a[2][1] * a[3][3] - a[3][1] * a[2][3], a[2][2] * a[3][3] - a[3][2] * a[2][3],
+    )
+    return s, c
+
+
+def _adjugate_columns(a):
+    """The four columns of adj(a) for 4x4 matrices a[i][j] (arrays), by Laplace expansion."""
+    s, c = _minors(a)
+    return (
+        (a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3], -a[1][0] * c[5] + a[1][2] * c[2] - a[1][3] * c[1],
+         a[1][0] * c[4] - a[1][1] * c[2] + a[1][3] * c[0], -a[1][0] * c[3] + a[1][1] * c[1] - a[1][2] * c[0]),
+        (-a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3], a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1],
+         -a[0][0] * c[4] + a[0][1] * c[2] - a[0][3] * c[0], a[0][0] * c[3] - a[0][1] * c[1] + a[0][2] * c[0]),
+        (a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3], -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1],
+         a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0], -a[3][0] * s[3] + a[3][1] * s[1] - a[3][2] * s[0]),
+        (-a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3], a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1],
+         -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0], a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0]),
+    )
+
+
+def _horn(S: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """Rotations maximising sum b.(R a), from S = sum a b^T (F, 3, 3) of centred points.
+
+    Horn's unit-quaternion method, vectorised: the largest eigenvalue of the
+    4x4 key matrix by Newton's method on its characteristic polynomial from
+    the upper bound G = (sum |a|^2 + sum |b|^2) / 2 (Theobald's QCP), and the
+    eigenvector as the largest column of the adjugate of (N - lambda I).
+    Exact for every non-collinear configuration, including planar ones (3
+    markers), and several times faster than batched 3x3 SVDs.
+    """
+    Sxx, Sxy, Sxz = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
+    Syx, Syy, Syz = S[:, 1, 0], S[:, 1, 1], S[:, 1, 2]
+    Szx, Szy, Szz = S[:, 2, 0], S[:, 2, 1], S[:, 2, 2]
+    n01, n02, n03 = Syz - Szy, Szx - Sxz, Sxy - Syx
+    n12, n13, n23 = Sxy + Syx, Szx + Sxz, Syz + Szy
+    diag = (Sxx + Syy + Szz, Sxx - Syy - Szz, -Sxx + Syy - Szz, -Sxx - Syy + Szz)
+    off = ((None, n01, n02, n03), (n01, None, n12, n13), (n02, n12, None, n23), (n03, n13, n23, None))
+    N = [[diag[i] if i == j else off[i][j] for j in range(4)] for i in range(4)]
+    s, c = _minors(N)
+    c0 = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]  # det N
+    c1 = -8 * (Sxx * (Syy * Szz - Syz * Szy) - Sxy * (Syx * Szz - Syz * Szx) + Sxz * (Syx * Szy - Syy * Szx))
+    c2 = -2 * np.einsum("fij,fij->f", S, S)
+    lam = G.copy()
+    for _ in range(60):  # converges monotonically from above, quadratically near the root
+        l2 = lam * lam
+        dp = 4 * l2 * lam + 2 * c2 * lam + c1
+        step = ((l2 + c2) * l2 + c1 * lam + c0) / np.where(dp != 0, dp, 1.0)
+        lam = lam - step
+        if np.all(np.abs(step) <= 1e-15 * np.abs(lam)):
+            break
+    A = [[N[i][j] - lam if i == j else N[i][j] for j in range(4)] for i in range(4)]
+    Q = np.stack([np.stack(col, 1) for col in _adjugate_columns(A)], 1)  # (F, column, component)
+    nrm = np.einsum("fji,fji->fj", Q, Q)
+    best = np.argmax(nrm, 1)
+    rows = np.arange(S.shape[0])
+    q = Q[rows, best] / np.sqrt(nrm[rows, best])[:, None]
+    q0, qx, qy, qz = q.T
+    R = np.empty((S.shape[0], 3, 3))
+    R[:, 0, 0] = q0 * q0 + qx * qx - qy * qy - qz * qz
+    R[:, 0, 1] = 2 * (qx * qy - q0 * qz)
+    R[:, 0, 2] = 2 * (qx * qz + q0 * qy)
+    R[:, 1, 0] = 2 * (qy * qx + q0 * qz)
+    R[:, 1, 1] = q0 * q0 - qx * qx + qy * qy - qz * qz
+    R[:, 1, 2] = 2 * (qy * qz - q0 * qx)
+    R[:, 2, 0] = 2 * (qz * qx - q0 * qy)
+    R[:, 2, 1] = 2 * (qz * qy + q0 * qx)
+    R[:, 2, 2] = q0 * q0 - qx * qx - qy * qy + qz * qz
+    return R
+
+
 def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched Kabsch: R (F,3,3), t (F,3) with obs[f] ~ R[f] ref + t[f]; NaN frames
-    with fewer than 3 visible markers or collinear visible markers."""
-    vis = np.isfinite(obs).all(-1) & np.isfinite(ref).all(-1)[None, :]
-    w = vis.astype(float)
-    cnt = w.sum(1)
-    csafe = np.where(cnt > 0, cnt, 1.0)
-    a = np.where(vis[..., None], ref[None], 0.0)
-    b = np.where(vis[..., None], obs, 0.0)
-    ca = np.einsum("fp,fpi->fi", w, a) / csafe[:, None]
-    cb = np.einsum("fp,fpi->fi", w, b) / csafe[:, None]
-    a = np.where(vis[..., None], a - ca[:, None], 0.0)
-    b = np.where(vis[..., None], b - cb[:, None], 0.0)
-    H = np.einsum("fpi,fpj->fij", b, a)  # sum b a^T
-    U, S, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U = U.copy()
-    U[:, :, 2] *= d[:, None]
-    R = U @ Vt
-    t = cb - np.einsum("fij,fj->fi", R, ca)
-    # H ~ R (sum a a^T): its singular values are the visible markers' principal variances
-    good = (cnt >= 3) & (S[:, 0] > 0) & (S[:, 1] > COLLINEAR_TOL**2 * S[:, 0])
-    R[~good] = np.nan
-    t[~good] = np.nan
+    """Batched rigid fit: R (F,3,3), t (F,3) with obs[f] ~ R[f] ref + t[f].
+
+    NaN markers are left out per frame; frames with fewer than 3 visible
+    markers, or collinear visible markers, get NaN.
+    """
+    F, P, _ = obs.shape
+    vis = np.isfinite(obs[..., 0] + obs[..., 1] + obs[..., 2])  # (F, P)
+    if vis.all():
+        cnt = np.full(F, float(P))
+        ca = np.broadcast_to(ref.mean(0), (F, 3))
+        cb = sum(obs[:, p] for p in range(P)) / P  # loop over markers, not frames
+        a = ref - ca[0]
+        b = obs - cb[:, None]
+        S = np.tensordot(a, b, axes=([0], [1])).transpose(1, 0, 2)  # (F, 3, 3) = sum_p a b^T
+        ga = np.full(F, np.einsum("pi,pi->", a, a))
+        C = np.broadcast_to(a.T @ a, (F, 3, 3))
+    else:
+        w = vis.astype(float)
+        cnt = w.sum(1)
+        csafe = np.where(cnt > 0, cnt, 1.0)[:, None]
+        ca = (w @ ref) / csafe
+        cb = np.einsum("fp,fpi->fi", w, np.where(vis[..., None], obs, 0.0)) / csafe
+        a = np.where(vis[..., None], ref[None] - ca[:, None], 0.0)
+        b = np.where(vis[..., None], obs - cb[:, None], 0.0)
+        at = a.transpose(0, 2, 1)
+        S = np.matmul(at, b)
+        ga = np.einsum("fpi,fpi->f", a, a)
+        C = np.matmul(at, a)
+    # collinear: the second elementary symmetric function of the visible
+    # reference scatter (~ lambda1 lambda2) vanishes relative to its trace^2
+    tr = np.einsum("fii->f", C)
+    e2 = 0.5 * (tr**2 - np.einsum("fij,fij->f", C, C))
+    good = (cnt >= 3) & (tr > 0) & (e2 > COLLINEAR_TOL**2 * tr**2)
+    G = 0.5 * (ga + np.einsum("fpi,fpi->f", b, b))
+    if good.all():
+        R = _horn(S, G)
+        return R, cb - _rotate(R, ca)
+    R = np.full((F, 3, 3), np.nan)
+    t = np.full((F, 3), np.nan)
+    if good.any():
+        Rg = _horn(S[good], G[good])
+        R[good] = Rg
+        t[good] = cb[good] - _rotate(Rg, ca[good])
     return R, t
 
 
 def _group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """Per-frame pose of a marker group against its mean shape; a reason string on failure."""
-    P = np.asarray(P, dtype=float)
-    if P.ndim != 3 or P.shape[2] != 3:
-        raise ValueError(f"{name} must be (F, N, 3), got shape {P.shape}")
+    """Per-frame pose of a marker group against its first complete frame; a reason on failure."""
     F, K, _ = P.shape
     if K < 3:
         return f"group {name} has {K} marker(s): at least 3 non-collinear markers are needed for its rotation"
-    complete = np.flatnonzero(np.isfinite(P).all((1, 2)))
+    complete = np.flatnonzero(np.isfinite(P.reshape(F, 3 * K).sum(1)))
     if complete.size == 0:
         return f"group {name}: no frame where all its {K} markers are seen (needed for the reference shape)"
     ref = P[complete[0]] - P[complete[0]].mean(0)
@@ -599,14 +702,6 @@ def _group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.nd
     if not (lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]):
         return f"group {name}: its markers are collinear, so its rotation about their line is undetermined"
     R, t = _kabsch(ref, P)
-    # one refinement: the mean shape over all aligned frames, in the reference's frame
-    back = np.einsum("fji,fpj->fpi", R, P - t[:, None, :])  # R^T (obs - t); NaN where unknown
-    seen = np.isfinite(back).all(-1)
-    cnt = seen.sum(0)
-    if np.all(cnt > 0):
-        mean = np.where(seen[..., None], back, 0.0).sum(0) / cnt[:, None]
-        ref = mean - mean.mean(0)
-        R, t = _kabsch(ref, P)
     return R, t, ref
 
 
@@ -619,9 +714,10 @@ def score_from_markers(
 ) -> ScoreFit:
     """SCoRE joint centre between two rigid marker groups.
 
-    Each group's pose per frame comes from a batched Kabsch fit of its
-    reference shape: the first frame where all its markers are seen, refined
-    once to the mean shape over all frames. A segment's local frame is that
+    Each group's pose per frame comes from a batched rigid fit (Horn's
+    quaternion method, vectorised) of its reference shape: the first frame
+    where all its markers are seen (its noise only shifts the local frame by
+    a constant rigid offset, which SCoRE absorbs). A segment's local frame is that
     shape's: origin at the markers' centroid, axes parallel to the lab axes
     at the first complete frame; the shapes are returned in ``markers1`` and
     ``markers2``. Frames where a group has fewer than 3 (non-collinear)
@@ -647,7 +743,7 @@ def score_from_markers(
     """
     A = np.asarray(A, dtype=float)
     B = np.asarray(B, dtype=float)
-    if A.ndim != 3 or B.ndim != 3 or A.shape[0] != B.shape[0]:
+    if A.ndim != 3 or B.ndim != 3 or A.shape[2] != 3 or B.shape[2] != 3 or A.shape[0] != B.shape[0]:
         raise ValueError(f"A and B must be (F, N, 3) with the same F, got {A.shape} and {B.shape}")
     F = A.shape[0]
     pa = _group_pose(A, "A")

@@ -126,8 +126,9 @@ def place_on_hinge(fit, A: np.ndarray, centres: np.ndarray, edges: np.ndarray, e
         return fit.centre, None
     u = np.einsum("fij,j->fi", R1, fit.axis1)
     s = np.stack([np.einsum("fi,fi->f", centres[:, k] - fit.centre, u) for k in nb], axis=1)
-    s = np.nanmean(s, axis=1) if np.isfinite(s).any() else s[:, 0]
-    if not np.isfinite(s).any():
+    ok = np.isfinite(s)
+    if not ok.any():
         return fit.centre, None
-    shift = float(np.nanmedian(s))
+    per_frame = np.where(ok, s, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
+    shift = float(np.median(per_frame[ok.any(axis=1)]))
     return fit.centre + shift * u, shift

@@ -27,6 +27,9 @@ class Params:
     rest_search: float = 0.25
     """Fraction of the take (from the start) searched for the rest frame."""
     iters: int = 5
+    max_frames: int = 1500
+    """Frames used to fit the shapes (spread over the take, the rest frame among them);
+    more add nothing measurable to constant offsets and cost time."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -97,6 +100,8 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
         if not 0 <= rest < F:
             raise DataError(f"rest frame {rest} is outside the take's {F} frames", mk.source or None)
 
+    use = np.unique(np.concatenate([np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int), [rest]]))
+    rest_i = int(np.searchsorted(use, rest))
     origin = np.full((S, 3), np.nan)
     marker_local = np.full((M, 3), np.nan)
     end_site = np.zeros((S, 3))
@@ -107,10 +112,10 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     for s in range(S):
         mids = seg.members(s)
         eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
-        obs = np.concatenate([pts[:, mids], joints.centres[:, eids]], axis=1)
-        shape, R, t, rms = procrustes_shape(obs, ref_frame=rest, iters=params.iters)
+        obs = np.concatenate([pts[use][:, mids], joints.centres[use][:, eids]], axis=1)
+        shape, R, t, rms = procrustes_shape(obs, ref_frame=rest_i, iters=params.iters)
         if not np.isfinite(shape).all():
-            shape = _fallback_shape(obs, rest, shape)
+            shape = _fallback_shape(obs, rest_i, shape)
         if not np.isfinite(shape).all():
             raise DataError(
                 f"segment {s} (markers {', '.join(mk.labels[i] for i in mids)}) is never seen well enough to fit",

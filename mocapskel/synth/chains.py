@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from ..artifacts import Markers
 from .truth import SynthTake, Truth
 
-__all__ = ["hang_chain", "kirk_linkage"]
+__all__ = ["hang_chain", "hang_tree", "kirk_linkage"]
 
 #: Nominal frame rate of Hang chains (Hz); Hang gives none.
 CHAIN_RATE = 100.0
@@ -45,12 +45,21 @@ def _spread_ok(p: np.ndarray, min_ratio: float) -> bool:
     return True
 
 
+def _line_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance of point p from the line through a and b."""
+    ax = (b - a) / np.linalg.norm(b - a)
+    off = p - a
+    return float(np.linalg.norm(off - (off @ ax) * ax))
+
+
 def _place_chain_markers(rng: np.random.Generator, n: int, ll: float, joints: np.ndarray) -> np.ndarray:
     """(n, 3) marker positions in a segment frame (bone along +x from 0 to ll).
 
     Around the bone: 15-85 % along it, 0.15-0.45 ll off its axis; pairwise at
     least 0.1 ll apart; 3+ markers not collinear, 4+ not coplanar (spread
-    ratios >= 0.15); 2 markers not in line with a joint of the segment.
+    ratios >= 0.15); 2 markers not in line with a joint of the segment, 1
+    marker not in line with two joints of the segment (so that solvability
+    propagation is possible).
     """
     for _ in range(10_000):
         x = rng.uniform(0.15, 0.85, n) * ll
@@ -63,31 +72,112 @@ def _place_chain_markers(rng: np.random.Generator, n: int, ll: float, joints: np
                 continue
         if not _spread_ok(p, 0.15):
             continue
-        if n == 2:
-            axis = (p[1] - p[0]) / np.linalg.norm(p[1] - p[0])
-            off = joints - p[0]
-            perp = off - np.outer(off @ axis, axis)
-            if np.linalg.norm(perp, axis=1).min() < 0.1 * ll:
-                continue
+        if n == 2 and min(_line_dist(j, p[0], p[1]) for j in joints) < 0.1 * ll:
+            continue
+        if n == 1 and any(_line_dist(p[0], joints[i], joints[k]) < 0.1 * ll
+                          for i in range(len(joints)) for k in range(i + 1, len(joints))):
+            continue
         return p
     raise RuntimeError("could not place markers")  # pragma: no cover
 
 
-def _pose_chain(R_root: np.ndarray, T_root: np.ndarray, R_rel: list[np.ndarray],
-                lengths: Sequence[float]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Global rotations and origins of every segment (origin = proximal joint; root: T_root)."""
-    R = [R_root]
-    O = [T_root]
-    for i, Rr in enumerate(R_rel):
-        tip = O[-1] + R[-1] @ np.array([lengths[i], 0.0, 0.0])
-        O.append(tip)
-        R.append(R[-1] @ Rr)
-    return R, O
+def _child_directions(rng: np.random.Generator, k: int) -> np.ndarray:
+    """(k, 3) unit directions of a segment's child joints: +x first, others forward-ish, 40+ degrees apart."""
+    dirs = [np.array([1.0, 0.0, 0.0])]
+    while len(dirs) < k:
+        v = rng.normal(size=3)
+        v /= np.linalg.norm(v)
+        if v[0] < 0.2 or any(v @ d > np.cos(np.radians(40.0)) for d in dirs):
+            continue
+        dirs.append(v)
+    return np.array(dirs[:k]).reshape(k, 3)
 
 
 def _markers_of(R: list[np.ndarray], O: list[np.ndarray], local: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([O[i][:, None, :] + np.einsum("fij,mj->fmi", R[i], local[i])
                            for i in range(len(local))], axis=1)
+
+
+def hang_tree(
+    parent: Sequence[int],
+    counts: Sequence[int],
+    n_frames: int = 100,
+    *,
+    rng: np.random.Generator,
+    link_length: float = 1.0,
+    noise: float = 0.0,
+) -> SynthTake:
+    """A tree of rigid segments with markers, generalising Hang's chains.
+
+    Segment ``i`` hangs from its parent ``parent[i]`` (``parent[0] = -1``,
+    parents listed before children) at a joint; a segment's first child joint
+    lies ``link_length`` along its own x axis from its proximal joint, further
+    child joints at the same distance in other forward directions (40+
+    degrees apart). Markers and motion as in :func:`hang_chain`.
+
+    Parameters
+    ----------
+    parent : sequence of int
+        Parent of every segment, -1 for the root (segment 0 only).
+    counts : sequence of int
+        Markers per segment, each >= 1.
+    n_frames, rng, link_length, noise
+        As in :func:`hang_chain`.
+
+    Returns
+    -------
+    SynthTake
+        One joint per non-root segment ``c`` (edge ``(parent[c], c)``), in segment
+        order; ``bone_length`` is ``link_length`` for a joint whose child has
+        children, NaN otherwise.
+    """
+    parent = [int(p) for p in parent]
+    counts = [int(c) for c in counts]
+    S = len(parent)
+    if S == 0 or len(counts) != S or min(counts) < 1:
+        raise ValueError(f"need one positive marker count per segment, got {counts} for {S} segments")
+    if parent[0] != -1 or any(not (0 <= parent[i] < i) for i in range(1, S)):
+        raise ValueError(f"parent must be -1 for segment 0 and list parents before children, got {parent}")
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be positive, got {n_frames}")
+    F = int(n_frames)
+    ll = float(link_length)
+    t = np.arange(F) / CHAIN_RATE
+    children = [[c for c in range(S) if parent[c] == i] for i in range(S)]
+    tip = [ll * _child_directions(rng, max(len(ch), 1)) for ch in children]  # local child-joint positions
+    local = [
+        _place_chain_markers(rng, counts[i], ll, np.vstack([np.zeros((1, 3)), tip[i]]))
+        for i in range(S)
+    ]
+    R = [_rotations(_smooth(rng, t, 3, amp=1.0, freq=(0.2, 1.0))) @ Rotation.random(random_state=rng).as_matrix()]
+    O = [_smooth(rng, t, 3, amp=ll, freq=(0.2, 1.0)) + rng.uniform(-ll, ll, 3)]
+    for c in range(1, S):
+        p = parent[c]
+        k = children[p].index(c)
+        O.append(O[p] + R[p] @ tip[p][k])
+        Rrel = _rotations(_smooth(rng, t, 3, amp=1.0, freq=(0.5, 2.0)) + rng.uniform(-0.5, 0.5, 3))
+        R.append(R[p] @ Rrel)
+    pts = _markers_of(R, O, local)
+    if noise > 0:
+        pts = pts + rng.normal(0.0, noise, pts.shape)
+    joints = np.stack(O[1:], axis=1) if S > 1 else np.zeros((F, 0, 3))
+    bone = np.array([ll if children[c] else np.nan for c in range(1, S)])
+    seg = np.repeat(np.arange(S), counts)
+    labels = tuple(f"S{s}M{k}" for s, n in enumerate(counts) for k in range(n))
+    info = {"kind": "hang_tree", "parent": parent, "counts": counts, "link_length": ll,
+            "noise": float(noise), "rate": CHAIN_RATE}
+    markers = Markers(points=pts, labels=labels, rate=CHAIN_RATE, units="mm", source="hang_tree", info=dict(info))
+    truth = Truth(
+        segment_names=tuple(f"seg{i}" for i in range(S)),
+        parent=np.array(parent),
+        marker_segment=seg,
+        marker_id=np.arange(seg.size),
+        joint_child=np.arange(1, S),
+        joints=joints,
+        bone_length=bone,
+        info=info,
+    )
+    return SynthTake(markers, truth)
 
 
 def hang_chain(
@@ -105,7 +195,7 @@ def hang_chain(
     runs from joint ``i-1`` to joint ``i`` along its own x axis; the end
     segments have the same length). Every segment rotates relative to its
     neighbour by a smooth random rotation (all three degrees of freedom, up to
-    about a radian), the root rotates and translates too.
+    about a radian, frequencies 0.5-2 Hz), the root rotates and translates too.
 
     Parameters
     ----------
@@ -125,49 +215,35 @@ def hang_chain(
     -------
     SynthTake
         Markers labelled ``S{segment}M{k}`` in segment order; truth with
-        ``parent = [-1, 0, 1, ...]``, joints ``(F, L-1, 3)`` and bone lengths.
+        ``parent = [-1, 0, 1, ...]``, joints ``(F, L-1, 3)`` (joint ``e`` between
+        segments ``e`` and ``e+1``) and bone lengths (``link_length``, NaN for
+        the last joint).
     """
     counts = [int(c) for c in counts]
     if not counts or min(counts) < 1:
         raise ValueError(f"counts must be a non-empty sequence of positive ints, got {counts}")
-    if n_frames < 1:
-        raise ValueError(f"n_frames must be positive, got {n_frames}")
-    L = len(counts)
-    F = int(n_frames)
-    ll = float(link_length)
-    t = np.arange(F) / CHAIN_RATE
-    joints_local = np.array([[0.0, 0.0, 0.0], [ll, 0.0, 0.0]])
-    local = [_place_chain_markers(rng, n, ll, joints_local) for n in counts]
-
-    R0 = _rotations(_smooth(rng, t, 3, amp=1.0, freq=(0.2, 1.0))) @ Rotation.random(random_state=rng).as_matrix()
-    T0 = _smooth(rng, t, 3, amp=ll, freq=(0.2, 1.0)) + rng.uniform(-ll, ll, 3)
-    R_rel = [
-        _rotations(_smooth(rng, t, 3, amp=1.0, freq=(0.5, 2.0)) + rng.uniform(-0.5, 0.5, 3))
-        for _ in range(L - 1)
-    ]
-    R, O = _pose_chain(R0, T0, R_rel, [ll] * L)
-    pts = _markers_of(R, O, local)
-    if noise > 0:
-        pts = pts + rng.normal(0.0, noise, pts.shape)
-    joints = np.stack(O[1:], axis=1) if L > 1 else np.zeros((F, 0, 3))
-    E = L - 1
-    bone = np.array([ll if e + 1 < E else np.nan for e in range(E)])
-    seg = np.repeat(np.arange(L), counts)
-    labels = tuple(f"S{s}M{k}" for s, n in enumerate(counts) for k in range(n))
+    take = hang_tree(list(range(-1, len(counts) - 1)), counts, n_frames, rng=rng,
+                     link_length=link_length, noise=noise)
     name = "hang_chain<" + "-".join(map(str, counts)) + ">"
-    info = {"kind": "hang_chain", "counts": counts, "link_length": ll, "noise": float(noise), "rate": CHAIN_RATE}
-    markers = Markers(points=pts, labels=labels, rate=CHAIN_RATE, units="mm", source=name, info=dict(info))
-    truth = Truth(
-        segment_names=tuple(f"seg{i}" for i in range(L)),
-        parent=np.arange(L) - 1,
-        marker_segment=seg,
-        marker_id=np.arange(seg.size),
-        joint_child=np.arange(1, L),
-        joints=joints,
-        bone_length=bone,
-        info=info,
-    )
+    info = {"kind": "hang_chain", "counts": counts, "link_length": float(link_length),
+            "noise": float(noise), "rate": CHAIN_RATE}
+    m, tr = take.markers, take.truth
+    markers = Markers(points=m.points, labels=m.labels, rate=m.rate, units=m.units, source=name, info=dict(info))
+    truth = Truth(tr.segment_names, tr.parent, tr.marker_segment, tr.marker_id, tr.joint_child,
+                  tr.joints, tr.bone_length, info)
     return SynthTake(markers, truth)
+
+
+def _pose_chain(R_root: np.ndarray, T_root: np.ndarray, R_rel: list[np.ndarray],
+                lengths: Sequence[float]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Global rotations and origins of every segment (origin = proximal joint; root: T_root)."""
+    R = [R_root]
+    O = [T_root]
+    for i, Rr in enumerate(R_rel):
+        tip = O[-1] + R[-1] @ np.array([lengths[i], 0.0, 0.0])
+        O.append(tip)
+        R.append(R[-1] @ Rr)
+    return R, O
 
 
 #: Joint-to-joint length of the middle rod of Kirk's linkage (mm).

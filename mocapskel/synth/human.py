@@ -125,7 +125,7 @@ _MARKER_SPEC = {
     "Head": _MarkerSpec((20, 0, 60), (30, 0, 250), (88, 102), (0.35, 0.95), (1, 0, 0), 180),
     "LUpperArm": _MarkerSpec((0, 0, 0), (0, 5, -300), (35, 55), (0.2, 0.85), (0, 1, 0), 120),
     "LForearm": _MarkerSpec((0, 0, 0), (10, 0, -255), (28, 42), (0.2, 0.85), (-0.5, 1, 0), 110),
-    "LHand": _MarkerSpec((0, 3, -20), (0, 5, -180), (22, 32), (0.2, 0.9), (-1, 0, 0), 80),
+    "LHand": _MarkerSpec((0, 3, -20), (0, 5, -180), (30, 45), (0.2, 0.9), (-1, 0, 0), 70),
     "LThigh": _MarkerSpec((0, 0, 0), (0, 5, -430), (60, 85), (0.2, 0.8), (0.6, 1, 0), 120),
     "LShank": _MarkerSpec((0, 0, 0), (-10, 0, -420), (40, 60), (0.15, 0.8), (0.5, 1, 0), 120),
     "LFoot": _MarkerSpec((-20, 0, -55), (175, 5, -60), (25, 45), (0.3, 1.0), (0, 0, 1), 100),
@@ -495,13 +495,13 @@ def _floor_lift(subj: _Subject, G: np.ndarray, O: np.ndarray) -> np.ndarray:
 
 def _band_noise(rng: np.random.Generator, n: int, channels: int, rate: float, band: tuple[float, float]) -> np.ndarray:
     """(n, channels) Gaussian noise limited to ``band`` Hz, unit variance per channel."""
-    w = rng.standard_normal((n, channels))
-    W = np.fft.rfft(w, axis=0)
     f = np.fft.rfftfreq(n, 1.0 / rate)
-    keep = (f >= band[0]) & (f <= band[1])
-    if not keep.any():  # too short a take for the band: use its lowest frequencies
-        keep[1 : min(4, f.size)] = True
-    W[~keep] = 0.0
+    keep = np.flatnonzero((f >= band[0]) & (f <= band[1]))
+    if keep.size == 0:  # too short a take for the band: use its lowest frequencies
+        keep = np.arange(1, min(4, f.size))
+    # random Fourier coefficients in the band only (white noise, filtered, without the forward FFT)
+    W = np.zeros((f.size, channels), dtype=complex)
+    W[keep] = rng.standard_normal((keep.size, channels)) + 1j * rng.standard_normal((keep.size, channels))
     x = np.fft.irfft(W, n=n, axis=0)
     sd = x.std(axis=0)
     return x / np.where(sd > 0, sd, 1.0)

@@ -1,0 +1,76 @@
+"""``mocapskel synth``: seeded generated takes with their ground truth."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import click
+
+from ..synth.presets import KINDS, Recipe, make
+from .main import cli
+from .options import check_output, common
+
+log = logging.getLogger("mocapskel")
+
+
+def _counts(value: str) -> tuple[int, ...]:
+    try:
+        c = tuple(int(x) for x in value.replace(",", "-").split("-") if x)
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not like 4-3-3") from None
+    if len(c) < 2 or min(c) < 1:
+        raise click.BadParameter("a chain needs at least 2 segments with at least 1 marker each")
+    return c
+
+
+@cli.command("synth")
+@click.argument("kind", type=click.Choice(KINDS))
+@click.option("-o", "--output", "output", required=True, type=click.Path(), help="Take to write (.c3d or .trc).")
+@click.option("--truth", "truth_path", type=click.Path(), default=None, help="Ground truth .npz [default: OUTPUT with .truth.npz].")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--frames", type=click.IntRange(min=2), default=7200, show_default=True)
+@click.option("--rate", type=click.FloatRange(min=1e-3), default=120.0, show_default=True, help="Frames per second (human, linkage).")
+@click.option("--motion", type=click.Choice(["rom", "walk"]), default="rom", show_default=True, help="Human: what the subject does.")
+@click.option("--counts", default="4-3-3", show_default=True, help="Chain: markers per segment.")
+@click.option("--link-length", type=float, default=300.0, show_default=True, help="Chain: joint-to-joint length (mm).")
+@click.option("--markers-per-segment", type=click.IntRange(min=1), default=None, help="Human: markers on each segment [default: 48-marker set].")
+@click.option("--scale", type=click.FloatRange(min=0.1), default=1.0, show_default=True, help="Human: body size factor.")
+@click.option("--subject-seed", type=int, default=None, help="Human: fix the subject (several takes of one person).")
+@click.option("--noise", "noise_mm", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Gaussian noise (mm).")
+@click.option("--soft-tissue", "soft_tissue_mm", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Skin wobble rms (mm).")
+@click.option("--gaps", "gaps", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Occlusion gaps per marker per minute.")
+@click.option("--jumps", type=click.IntRange(min=0), default=0, show_default=True, help="Sporadic jumps.")
+@click.option("--ghosts", type=click.IntRange(min=0), default=0, show_default=True, help="Ghost markers.")
+@click.option("--passive", is_flag=True, help="New label after every gap (passive system).")
+@common
+def synth_cmd(kind, output, truth_path, seed, frames, rate, motion, counts, link_length, markers_per_segment, scale,
+              subject_seed, noise_mm, soft_tissue_mm, gaps, jumps, ghosts, passive):
+    """Generate a take with ground truth (joint centres, topology, bone lengths).
+
+    \b
+    Examples:
+        mocapskel synth human -o rom.c3d --noise 1 --soft-tissue 2 --gaps 4
+        mocapskel synth linkage -o linkage.trc --noise 0.5 --frames 2400
+        mocapskel synth chain --counts 3-2-2-2-2 -o chain.trc --frames 100
+    """
+    out = check_output(output, suffixes=(".c3d", ".trc"))
+    truth_out = Path(truth_path) if truth_path else out.with_name(out.name[: -len(out.suffix)] + ".truth.npz")
+    if truth_path:
+        check_output(truth_path, suffixes=(".npz",))
+    recipe = Recipe(
+        kind=kind, seed=seed, frames=frames, rate=rate, motion=motion, counts=_counts(counts), link_length=link_length,
+        markers_per_segment=markers_per_segment, scale=scale, subject_seed=subject_seed, noise_mm=noise_mm,
+        soft_tissue_mm=soft_tissue_mm, gaps_per_marker_per_minute=gaps, jumps=jumps, ghosts=ghosts, passive=passive,
+    )
+    take = make(recipe)
+    from dataclasses import replace
+
+    from ..io.atomic import atomic_path
+    from ..io.markers import write_markers
+
+    markers = replace(take.markers, source=out.name)
+    write_markers(out, markers)
+    with atomic_path(truth_out) as tmp:
+        with open(tmp, "wb") as f:
+            take.truth.save(f)
+    log.info("wrote %s (%d frames, %d labels) and %s", out, markers.n_frames, markers.n_markers, truth_out)
