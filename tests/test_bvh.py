@@ -55,7 +55,8 @@ def _random_skeleton(rng: np.random.Generator, S: int, order: str = "ZXY") -> Bv
 def _random_motion(rng: np.random.Generator, F: int, S: int, smooth: bool = True) -> tuple[np.ndarray, np.ndarray]:
     t = np.linspace(0, 1, F)[:, None, None]
     if smooth:  # large smooth rotations: several full turns, passes near gimbal lock
-        rv = rng.normal(0, 2, (1, S, 3)) * np.sin(2 * np.pi * t * rng.uniform(0.3, 2, (1, S, 3)) + rng.uniform(0, 6, (1, S, 3)))
+        freq, phase = rng.uniform(0.3, 2, (1, S, 3)), rng.uniform(0, 6, (1, S, 3))
+        rv = rng.normal(0, 2, (1, S, 3)) * np.sin(2 * np.pi * freq * t + phase)
     else:
         rv = rng.normal(0, 2, (F, S, 3))
     root_pos = np.cumsum(rng.normal(0, 2, (F, 3)), axis=0) + rng.uniform(-30, 30, 3)
@@ -256,6 +257,25 @@ def test_zero_frames(tmp_path: Path) -> None:
     assert back.names == ("Only",) and rp.shape == (0, 3) and lr.shape == (0, 1, 3, 3) and ft == 0.01
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 10),
+    st.lists(st.floats(-1e7, 1e7, allow_subnormal=True), min_size=1, max_size=40),
+    st.integers(1, 5),
+)
+def test_motion_numbers_are_exactly_printf(precision: int, values: list[float], columns: int) -> None:
+    """The vectorised formatter writes what '%.{p}f' would, byte for byte."""
+    rng = np.random.default_rng(len(values))
+    extra = [0.5 * 10.0**-precision, -0.5 * 10.0**-precision, -1e-12, 1e15, -3e17, 123.456789]
+    flat = np.array(values + extra + list(rng.normal(0, 10.0 ** rng.integers(-3, 6), 24)))
+    blk = np.round(flat[: len(flat) // columns * columns].reshape(-1, columns), precision) + 0.0
+    row = " ".join([f"%.{precision}f"] * columns) + "\n"
+    assert bvh_module._format_fixed(blk, precision) == (row * blk.shape[0]) % tuple(blk.ravel().tolist())
+    small = blk[np.abs(blk).max(axis=1) < 1e6]  # the numpy path (not the '%' fallback)
+    if small.size:
+        assert bvh_module._format_fixed(small, precision) == (row * small.shape[0]) % tuple(small.ravel().tolist())
+
+
 # --------------------------------------------------------------------------- DESIGN rules
 
 
@@ -446,6 +466,35 @@ def test_global_and_local_rotations_round_trip() -> None:
     _, G = forward_kinematics(skel, root_pos, local, with_rot=True)
     np.testing.assert_allclose(local_to_global_rot(skel.parent, local), G, atol=1e-13)
     np.testing.assert_allclose(global_to_local_rot(skel.parent, G), local, atol=1e-13)
+
+
+@pytest.mark.parametrize(("up", "units"), [("y", "cm"), ("z", "mm"), ("y", "m")])
+def test_export_recipe_puts_lab_motion_into_bvh(tmp_path: Path, up: str, units: str) -> None:
+    """Global lab rotations (rest axes = lab axes) -> BVH, as the module docstring says; bvhio agrees."""
+    rng = np.random.default_rng(14)
+    S, F = 7, 12
+    parent = np.array([-1, 0, 1, 0, 3, 0, 5])
+    origin = rng.uniform(-400, 400, (S, 3))  # mm, lab frame, at the rest frame
+    rot = Rotation.random(F * S, random_state=rng).as_matrix().reshape(F, S, 3, 3)  # global, relative to rest
+    root = rng.uniform(-1000, 1000, (F, 3))
+    lab = np.empty((F, S, 3))
+    lab[:, 0] = root
+    for s in range(1, S):
+        lab[:, s] = lab[:, parent[s]] + rot[:, parent[s]] @ (origin[s] - origin[parent[s]])
+    off = origin.copy()
+    off[1:] -= origin[parent[1:]]
+    skel = BvhSkeleton(("Pelvis", "Spine", "Head", "LThigh", "LShin", "RThigh", "RShin"), parent,
+                       lab_to_bvh(off, up, units), np.zeros((S, 3)))
+    root_b = lab_to_bvh(root, up, units)
+    local = global_to_local_rot(parent, lab_rot_to_bvh(rot, up))
+    np.testing.assert_allclose(bvh_to_lab(forward_kinematics(skel, root_b, local), up, units), lab, atol=1e-9)
+    path = tmp_path / "lab.bvh"
+    write_bvh(path, skel, root_b, local, 1 / 100, precision=8 if units == "m" else 6)
+    theirs = _bvhio_world_positions(path, [0, F - 1])
+    # 1e-4 of the output unit, or bvhio's float32 rounding where that is coarser (mm)
+    tol = max(1e-4 * UNIT_SCALE[units], 1e-6 * np.abs(lab).max())
+    for s, name in enumerate(skel.names):
+        np.testing.assert_allclose(bvh_to_lab(theirs[name], up, units), lab[[0, F - 1], s], atol=tol)
 
 
 def test_lab_to_bvh_axes_and_units() -> None:

@@ -26,11 +26,26 @@ def setup_logging(verbose: int, quiet: bool) -> None:
     _State.verbose = verbose
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 0 else logging.INFO)
     log.setLevel(level)
-    if not log.handlers:
-        h = logging.StreamHandler(sys.stderr)
+    if not any(isinstance(h, _StderrHandler) for h in log.handlers):
+        h = _StderrHandler()
         h.setFormatter(logging.Formatter("mocapskel: %(message)s"))
         log.addHandler(h)
     log.propagate = False
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (so test runners capture it)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
 
 
 class MocapskelGroup(click.Group):

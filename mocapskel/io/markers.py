@@ -296,7 +296,9 @@ def read_markers(
         from .trc import read_trc
 
         raw = read_trc(path)
-    return _finish(raw, p.name, spath, exclude=tuple(exclude), include=tuple(include))
+    exclude = (exclude,) if isinstance(exclude, str) else tuple(exclude)
+    include = (include,) if isinstance(include, str) else tuple(include)
+    return _finish(raw, p.name, spath, exclude=exclude, include=include)
 
 
 def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], include: tuple[str, ...]) -> Markers:
@@ -372,7 +374,8 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
         )
     excluded = [s for s, k in zip(lab.final, keep) if not k]
     never_seen = [s for s, v in zip(labels, seen_any) if not v]
-    renamed = {k: v for k, v in lab.renamed.items() if k in set(labels)}
+    kept = set(labels)
+    renamed = {k: v for k, v in lab.renamed.items() if k in kept}
     for w in warnings:
         log.warning("%s: %s", name, w)
     info = {

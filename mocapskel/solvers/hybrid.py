@@ -14,8 +14,11 @@ is solved, using the costly per-frame JMV optimisation as little as possible:
    (special 4, special 3, 2-marker, 1-marker), until the system state stops
    changing.
 3. REDUCED JMV SOLVER: while joints remain, one of them is solved by JMV, then
-   step 2 runs again. The joint chosen is the one of the waiting groups in
-   Hang's order whose JMV problem has the most points (solved joints count).
+   step 2 runs again. The joint chosen is, among those whose JMV problem is
+   determined (4+ points; solved joints count), the first in Hang's group
+   order, then the one with the most points. (Three points, e.g. a 1-marker
+   group against a 2-marker group, leave Q = 0 reachable for a family of
+   radii: JMV then needs ``alpha`` > 0 or a later propagation.)
 
 Both groups' points (markers and solved joints other than the one sought)
 enter Kirk's cost Q of every joint. When both groups of a joint have a basis,
@@ -189,15 +192,19 @@ def solve_tree(
         js = [centres[:, e][:, None, :] for e in incident[g] if usable[e] and e != skip]
         return (np.concatenate([gs[g], *js], axis=1) if js else gs[g]), len(js)
 
+    cache: dict[tuple[int, tuple[int, ...]], Basis | None] = {}
+
     def basis_of(g: int) -> tuple[Basis | None, bool]:
         """The group's basis and whether it needed solved joints."""
         if own[g] is not None and own[g]:
             return own[g], False
-        pts, nj = points(g)
-        if nj == 0 or pts.shape[1] < 3:
+        key = (g, tuple(e for e in incident[g] if usable[e]))
+        if not key[1] or gs[g].shape[1] + len(key[1]) < 3:
             return None, False
-        b = mtb_basis(pts, tol=tol)
-        return (b, True) if b else (None, False)
+        if key not in cache:
+            b = mtb_basis(points(g)[0], tol=tol)
+            cache[key] = b if b else None
+        return cache[key], cache[key] is not None
 
     def waiting() -> list[int]:
         return [g for g in range(G) if any(not solved[e] for e in incident[g])]
@@ -225,10 +232,10 @@ def solve_tree(
         pa, _ = points(a, e)
         pb, _ = points(b, e)
         fits: list[tuple[JointFit, int, bool]] = []
-        for g in (a, b):
+        for g, side in ((a, "a"), (b, "b")):
             bas, prop = basis_of(g)
             if bas is not None:
-                fits.append((mtb_joint(bas, pa, pb, alpha=alpha), int(g), prop))
+                fits.append((mtb_joint(bas, pa, pb, alpha=alpha, basis_side=side), int(g), prop))
         if not fits:
             return None
         good = [f for f in fits if f[0].ok] or fits
@@ -239,7 +246,9 @@ def solve_tree(
             one = np.isfinite(ca).all(-1) ^ np.isfinite(cb).all(-1)
             c[one] = np.where(np.isfinite(ca[one]), ca[one], cb[one])
             both = np.concatenate([pa, pb], axis=1)
-            fit = JointFit(c, joint_cost(c, both, alpha), good[0][0].n_iter + good[1][0].n_iter, True)
+            allok = good[0][0].ok and good[1][0].ok
+            why = "" if allok else (good[0][0].reason or good[1][0].reason)
+            fit = JointFit(c, joint_cost(c, both, alpha), good[0][0].n_iter + good[1][0].n_iter, allok, why)
             meth = "mtb-propagated" if (good[0][2] or good[1][2]) else "mtb"
             store(e, fit, meth, -1)
             return meth
@@ -253,7 +262,7 @@ def solve_tree(
         es = [e for e in incident[g] if not solved[e]]
         done = [e for e in es if solve_mtb(e) is not None]
         if done:
-            record("pre", g, done, "mtb")
+            record("pre", g, done, method[done[0]])
 
     # 2. SOLVED-JOINT-DEPENDENT SOLVER, looped until the state stops changing.
     def propagate() -> None:
@@ -285,10 +294,11 @@ def solve_tree(
             a, b = ed[e]
             pa, ja = points(a, e)
             pb, jb = points(b, e)
-            first = min(cat[a], cat[b])
-            cand.append((first, -(pa.shape[1] + pb.shape[1]), -(ja + jb), int(e)))
+            n = pa.shape[1] + pb.shape[1]
+            # determined problems (4+ points) first, then Hang's group order
+            cand.append((n < 4, min(cat[a], cat[b]), -n, -(ja + jb), int(e)))
         cand.sort()
-        e = cand[0][3]
+        e = cand[0][-1]
         a, b = ed[e]
         pa, _ = points(a, e)
         pb, _ = points(b, e)

@@ -60,10 +60,41 @@ class IKResult:
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+    """(..., 3) -> (..., 3, 3) cross-product matrices: ``_hat(a) @ b == cross(a, b)``."""
+    K = np.zeros(v.shape + (3,))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    K[..., 0, 1] = -z
+    K[..., 0, 2] = y
+    K[..., 1, 0] = z
+    K[..., 1, 2] = -x
+    K[..., 2, 0] = -y
+    K[..., 2, 1] = x
+    return K
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (faster than np.cross for large batches)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
+def _mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Batched matrix-vector product (..., 3, 3) x (..., 3) -> (..., 3)."""
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], v.shape))
+    for i in range(3):
+        out[..., i] = A[..., i, 0] * v0 + A[..., i, 1] * v1 + A[..., i, 2] * v2
+    return out
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot product over the last axis."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def _exp(rv: np.ndarray) -> np.ndarray:
@@ -144,16 +175,31 @@ def _log(R: np.ndarray) -> np.ndarray:
 
 def _inv3(A: np.ndarray) -> np.ndarray:
     """Inverse of (..., 3, 3) matrices by cofactors."""
-    r0, r1, r2 = A[..., 0, :], A[..., 1, :], A[..., 2, :]
-    c0 = np.cross(r1, r2)
-    c1 = np.cross(r2, r0)
-    c2 = np.cross(r0, r1)
-    det = (r0 * c0).sum(-1)
-    return np.stack([c0, c1, c2], -1) / det[..., None, None]
+    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
+    d, e, f = A[..., 1, 0], A[..., 1, 1], A[..., 1, 2]
+    g, h, i = A[..., 2, 0], A[..., 2, 1], A[..., 2, 2]
+    out = np.empty(A.shape)
+    out[..., 0, 0] = e * i - f * h
+    out[..., 1, 0] = f * g - d * i
+    out[..., 2, 0] = d * h - e * g
+    det = a * out[..., 0, 0] + b * out[..., 1, 0] + c * out[..., 2, 0]
+    out[..., 0, 1] = c * h - b * i
+    out[..., 1, 1] = a * i - c * g
+    out[..., 2, 1] = b * g - a * h
+    out[..., 0, 2] = b * f - c * e
+    out[..., 1, 2] = c * d - a * f
+    out[..., 2, 2] = a * e - b * d
+    out /= det[..., None, None]
+    return out
 
 
 def _project_so3(R: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrices (polar decomposition with a proper determinant)."""
+    """Nearest rotation matrices (polar decomposition with a proper determinant).
+
+    Returned as they are when they already are rotations to 1e-9."""
+    RtR = np.swapaxes(R, -1, -2) @ R
+    if np.abs(RtR - np.eye(3)).max(initial=0.0) < 1e-9 and np.all(np.linalg.det(R) > 0):
+        return np.array(R, dtype=float)
     U, _, Vt = np.linalg.svd(R)
     d = np.sign(np.linalg.det(U @ Vt))
     U = U.copy()
@@ -264,22 +310,29 @@ class _Tree:
         self.S = S
         self.par = np.array([inv[parent[o]] if parent[o] >= 0 else -1 for o in order])  # new indices
         self.children = [[int(inv[c]) for c in children[o]] for o in order]
-        self.nonroot = np.arange(1, S)
+        self.child_slot = np.zeros(S, dtype=int)  # rank of a segment among its siblings
+        for ch in self.children:
+            self.child_slot[ch] = np.arange(len(ch))
+        self.max_children = max(len(ch) for ch in self.children)
         depth = np.zeros(S, dtype=int)
         for s in range(1, S):
             depth[s] = depth[self.par[s]] + 1
         bounds = np.flatnonzero(np.diff(depth)) + 1
-        starts = np.concatenate([[0], bounds])
-        ends = np.concatenate([bounds, [S]])
+        starts = np.concatenate([[0], bounds]).astype(int)
+        ends = np.concatenate([bounds, [S]]).astype(int)
         self.levels = [slice(int(a), int(b)) for a, b in zip(starts, ends)]
-        # per level > 0: (n_level, n_previous_level) child -> parent incidence
-        self.incidence = [None]
-        for lv in range(1, len(self.levels)):
-            cur, prev = self.levels[lv], self.levels[lv - 1]
-            inc = np.zeros((cur.stop - cur.start, prev.stop - prev.start))
-            inc[np.arange(cur.stop - cur.start), self.par[cur] - prev.start] = 1.0
-            self.incidence.append(inc)
-        self.path = []  # segments from the root to s, inclusive
+        # per level: groups of (positions in the level, parents) with distinct parents,
+        # so that children's terms can be added to their parents without collisions
+        self.groups: list[list[tuple[np.ndarray, np.ndarray]]] = []
+        for sl in self.levels:
+            idx = np.arange(sl.start, sl.stop)
+            rank = self.child_slot[idx]
+            self.groups.append(
+                [(np.flatnonzero(rank == r), self.par[idx[rank == r]]) for r in range(int(rank.max()) + 1)]
+                if sl.start > 0
+                else []
+            )
+        self.path: list[list[int]] = []  # segments from the root to s, inclusive
         for s in range(S):
             self.path.append((self.path[self.par[s]] if s else []) + [s])
 
@@ -291,18 +344,19 @@ class _Model:
     """Marker model on a reordered tree, with the per-iteration kernels.
 
     Layouts: rotations ``R`` (S, F, 3, 3) and segment quantities (S, F, ...)
-    segment-major; markers in per-segment slots, (S, F, 3, K) with K the most
-    markers on one segment (padding slots have weight 0).
+    segment-major; markers in per-segment slots (S, F, 3, K), K the most
+    markers on one segment, padding slots with weight 0.
+
+    The iterations never touch single markers: for fixed observations and
+    weights, a segment's cost, gradient and Gauss-Newton Hessian are
+    functions of a few per-frame sums (:meth:`stats`), so an iteration costs
+    O(S) 3x3 operations per frame whatever the number of markers.
     """
 
     def __init__(self, tree: _Tree, origin: np.ndarray, seg: np.ndarray, local: np.ndarray):
         self.t = tree
         S = tree.S
         self.origin = origin
-        off = np.zeros((S, 3))
-        nr = tree.nonroot
-        off[nr] = origin[nr] - origin[tree.par[nr]]
-        self.off = off
         self.seg = seg  # (M,) segment of every used marker
         self.local = local  # (M, 3)
         self.members = [np.flatnonzero(seg == s) for s in range(S)]
@@ -313,10 +367,17 @@ class _Model:
         for s, ms in enumerate(self.members):
             self.slot[ms] = np.arange(len(ms))
             lp[s, : len(ms)] = local[ms]
-        self.lpT = np.ascontiguousarray(lp.transpose(0, 2, 1))  # (S, 3, K)
         self.lp = lp  # (S, K, 3)
+        self.lpT = np.ascontiguousarray(lp.transpose(0, 2, 1))  # (S, 3, K)
         self.lout = (lp[..., :, None] * lp[..., None, :]).reshape(S, K, 9)
+        # children's offsets from their parent's origin, by parent: (S, 3, C)
+        C = max(tree.max_children, 1)
+        offT = np.zeros((S, 3, C))
+        for c in range(1, S):
+            offT[tree.par[c], :, tree.child_slot[c]] = origin[c] - origin[tree.par[c]]
+        self.offT = offT
 
+    # ---- layout
     def pack(self, a: np.ndarray, fill: float = 0.0) -> np.ndarray:
         """(F, M, ...) marker array -> (S, F, ..., K) slots."""
         out = np.full((self.t.S, self.K) + a.shape[:1] + a.shape[2:], fill, dtype=float)
@@ -327,38 +388,64 @@ class _Model:
         """(S, F, K) slots -> (F, M)."""
         return a[self.seg, :, self.slot].T
 
-    def fk(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bone vectors G (S, F, 3) (G[c] from parent(c)'s origin to c's, 0 for the root),
-        origins P (S, F, 3) and marker levers L = R l (S, F, 3, K)."""
+    # ---- kinematics
+    def fk(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bone vectors G (S, F, 3) (G[c] from parent(c)'s origin to c's, 0 for the root)
+        and origins P (S, F, 3)."""
         t = self.t
         S, F = R.shape[:2]
         G = np.zeros((S, F, 3))
         if S > 1:
-            G[1:] = (R[t.par[1:]] @ self.off[1:, None, :, None])[..., 0]
+            B = (R.reshape(S, F * 3, 3) @ self.offT).reshape(S, F, 3, -1)
+            G[1:] = B[t.par[1:], :, :, t.child_slot[1:]]
         P = np.empty((S, F, 3))
         P[0] = p
         for s in range(1, S):
             P[s] = P[t.par[s]] + G[s]
-        L = (R.reshape(S, F * 3, 3) @ self.lpT).reshape(S, F, 3, self.K)
-        return G, P, L
+        return G, P
 
-    def residual(
-        self, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """FK, residuals r = x - y (S, F, 3, K) and the data cost (F,)."""
-        G, P, L = self.fk(p, R)
-        r = L + P[..., None]
-        r -= y
-        cost = np.einsum("sfk,sfk->f", w, (r * r).sum(2))
-        return G, L, r, cost
+    def markers(self, p: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Model marker positions (S, F, 3, K)."""
+        S, F = R.shape[:2]
+        _, P = self.fk(p, R)
+        return (R.reshape(S, F * 3, 3) @ self.lpT).reshape(S, F, 3, self.K) + P[..., None]
+
+    # ---- sufficient statistics of the data
+    def stats(self, y: np.ndarray, w: np.ndarray) -> dict[str, np.ndarray]:
+        """Per segment and frame: W = sum w, lbar / ybar the weighted centroids of the
+        rest offsets and of the observations, Cc = sum w (y - ybar)(l - lbar)^T,
+        Cw = sum w l l^T, c0 = sum w (|l - lbar|^2 + |y - ybar|^2).
+        ``y`` (S, F, 3, K) and ``w`` (S, F, K) in slot layout."""
+        S, F = w.shape[:2]
+        W = w.sum(-1)
+        Wd = np.where(W > 0, W, 1.0)
+        lbar = (w @ self.lp) / Wd[..., None]
+        ybar = (y @ w[..., None])[..., 0] / Wd[..., None]
+        yc = y - ybar[..., None]  # (S, F, 3, K)
+        lc = self.lp[:, None] - lbar[:, :, None, :]  # (S, F, K, 3)
+        Cc = (yc * w[:, :, None, :]) @ lc
+        c0 = np.einsum("sfk,sfk->sf", w, (lc * lc).sum(-1)) + np.einsum("sfk,sfik->sf", w, yc * yc)
+        Cw = (w @ self.lout).reshape(S, F, 3, 3)
+        return {"W": W, "lbar": lbar, "ybar": ybar, "Cc": Cc, "Cw": Cw, "c0": c0}
+
+    def cost(self, p: np.ndarray, R: np.ndarray, st: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bones G, origins P and the data cost sum_m w |x_m - y_m|^2 (F,).
+
+        With d = P + R lbar - ybar: cost = sum_s W |d|^2 + c0 - 2 <R, Cc>.
+        """
+        G, P = self.fk(p, R)
+        S, F = R.shape[:2]
+        d = P + _mv(R, st["lbar"]) - st["ybar"]
+        RC = np.einsum("sfk,sfk->sf", R.reshape(S, F, 9), st["Cc"].reshape(S, F, 9))
+        c = st["W"] * _dot(d, d) + st["c0"] - 2 * RC
+        return G, P, c.sum(0)
 
     def step(
         self,
         R: np.ndarray,
         G: np.ndarray,
-        L: np.ndarray,
-        r: np.ndarray,
-        w: np.ndarray,
+        P: np.ndarray,
+        st: dict[str, np.ndarray],
         e: np.ndarray,
         pw: float,
         lam: np.ndarray,
@@ -366,64 +453,74 @@ class _Model:
     ) -> tuple[np.ndarray, np.ndarray]:
         """One damped Gauss-Newton step: (dp (F, 3), drot (S, F, 3)).
 
-        Solves ``(J^T W J + pw I + damping) d = -(J^T W r + pw e)`` exactly, in
-        O(S) 3x3 operations per frame: the unknowns are the root position and
-        one rotation increment per segment; writing every segment's origin
-        increment ``dP_s`` as an intermediate, a segment's own terms involve only
-        ``(dP_s, d_s)`` and a child's origin increment is ``dP_c = dP_s - G_c x d_s``.
-        Leaves first, each segment's rotation increment is eliminated, leaving
-        a 3x3 quadratic in ``dP_s`` that is pushed onto the parent through
-        ``[I, -[G_c]x]``; the root's 3x3 system gives ``dp``; then top-down
-        back-substitution. The Levenberg-Marquardt damping adds
-        ``lam * diag`` to every segment's (effective) rotation block and to
-        the root position block.
+        Solves ``(J^T W J + pw I + damping) d = -(J^T W r + pw e)`` exactly in
+        O(S) 3x3 operations per frame. The unknowns are the root position and
+        one rotation increment per segment; with every segment's origin
+        increment ``dP_s`` as an intermediate, a segment's own terms involve
+        only ``(dP_s, d_s)`` and a child's origin moves by
+        ``dP_c = dP_s - G_c x d_s``. Leaves first, each segment's rotation
+        increment is eliminated, leaving a 3x3 quadratic in ``dP_s`` that is
+        pushed onto the parent through ``[I, -[G_c]x]``; the root's 3x3 system
+        gives ``dp``; back-substitution runs root first. The
+        Levenberg-Marquardt damping adds ``lam * diag`` to each segment's
+        (effective) rotation block and to the root position block.
         """
         t = self.t
         S, F = R.shape[:2]
         I3 = np.eye(3)
-        wr = w[:, :, None, :] * r  # (S, F, 3, K)
-        gP = wr.sum(-1)  # (S, F, 3)
-        L0, L1, L2 = L[:, :, 0], L[:, :, 1], L[:, :, 2]
-        r0, r1, r2 = wr[:, :, 0], wr[:, :, 1], wr[:, :, 2]
-        gd = np.stack([(L1 * r2 - L2 * r1).sum(-1), (L2 * r0 - L0 * r2).sum(-1), (L0 * r1 - L1 * r0).sum(-1)], -1)
+        W = st["W"]
+        a = _mv(R, st["lbar"])  # R lbar
+        d = P + a - st["ybar"]
+        A = W[..., None] * a  # sum w L
+        Rt = np.ascontiguousarray(np.swapaxes(R, -1, -2))
+        Cr = st["Cc"] @ Rt
+        gP = W[..., None] * d  # sum w r
+        gd = _cross(A, d)  # sum w L x r
+        gd[..., 0] += Cr[..., 1, 2] - Cr[..., 2, 1]
+        gd[..., 1] += Cr[..., 2, 0] - Cr[..., 0, 2]
+        gd[..., 2] += Cr[..., 0, 1] - Cr[..., 1, 0]
         gd += pw * e
-        W = w.sum(-1)  # (S, F)
-        Cw = (w @ self.lout).reshape(S, F, 3, 3)  # sum w l l^T
-        N = R @ Cw @ np.ascontiguousarray(np.swapaxes(R, -1, -2))  # sum w L L^T
-        A = (R @ (w @ self.lp)[..., None])[..., 0]  # sum w L
+        N = R @ st["Cw"] @ Rt  # sum w L L^T
         HPP = W[..., None, None] * I3
         HPd = -_hat(A)
-        Hdd = (N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2] + pw)[..., None, None] * I3 - N
+        Hdd = -N
+        tr = N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2] + pw
+        for i in range(3):
+            Hdd[..., i, i] += tr
 
         Dinv = np.empty_like(Hdd)
+        HdP = np.empty_like(HPd)
+        xP0 = np.zeros((F, 3))
         for lv in range(len(t.levels) - 1, -1, -1):
             sl = t.levels[lv]
-            la = lam[None, :, None]
-            dd = np.einsum("sfii->sfi", Hdd[sl])
-            Hdd[sl] += (la * dd + floor)[..., None] * I3
-            Di = _inv3(Hdd[sl])
+            D = Hdd[sl]
+            for i in range(3):
+                D[..., i, i] *= 1 + lam
+                D[..., i, i] += floor
+            Di = _inv3(D)
             Dinv[sl] = Di
+            HdP[sl] = np.swapaxes(HPd[sl], -1, -2)
             Z = HPd[sl] @ Di
-            K = HPP[sl] - Z @ np.swapaxes(HPd[sl], -1, -2)
-            k = gP[sl] - (Z @ gd[sl][..., None])[..., 0]
+            K = HPP[sl] - Z @ HdP[sl]
+            k = gP[sl] - _mv(Z, gd[sl])
             if lv == 0:
-                K0 = K[0] + (lam[:, None] * np.einsum("fii->fi", K[0]) + floor)[..., None] * I3
-                xP0 = (_inv3(K0) @ k[0][..., None])[..., 0]
+                K0 = K[0]
+                for i in range(3):
+                    K0[..., i, i] *= 1 + lam
+                    K0[..., i, i] += floor
+                xP0 = _mv(_inv3(K0), k[0])
                 break
-            Gh = _hat(G[sl])
+            Gs = G[sl]
+            Gh = _hat(Gs)
             KG = K @ Gh
-            inc = t.incidence[lv]
-            prev = t.levels[lv - 1]
-            n = sl.stop - sl.start
-
-            def push(target: np.ndarray, val: np.ndarray) -> None:
-                target[prev] += np.tensordot(inc, val.reshape(n, -1), axes=(0, 0)).reshape(target[prev].shape)
-
-            push(HPP, K)
-            push(HPd, -KG)
-            push(Hdd, -(Gh @ KG))
-            push(gP, k)
-            push(gd, np.cross(G[sl], k))
+            GKG = Gh @ KG
+            Gk = _cross(Gs, k)
+            for pos, par in t.groups[lv]:
+                HPP[par] += K[pos]
+                HPd[par] -= KG[pos]
+                Hdd[par] -= GKG[pos]
+                gP[par] += k[pos]
+                gd[par] += Gk[pos]
         # back-substitution, root first
         xP = np.empty((S, F, 3))
         xd = np.empty((S, F, 3))
@@ -431,9 +528,8 @@ class _Model:
         for sl in t.levels:
             if sl.start > 0:
                 pr = t.par[sl]
-                xP[sl] = xP[pr] - np.cross(G[sl], xd[pr])
-            rhs = gd[sl] - (np.swapaxes(HPd[sl], -1, -2) @ xP[sl][..., None])[..., 0]
-            xd[sl] = (Dinv[sl] @ rhs[..., None])[..., 0]
+                xP[sl] = xP[pr] - _cross(G[sl], xd[pr])
+            xd[sl] = _mv(Dinv[sl], gd[sl] - _mv(HdP[sl], xP[sl]))
         return -xP0, -xd
 
 
@@ -447,7 +543,10 @@ def _dense_system(
     """
     t = model.t
     S, F = R.shape[:2]
-    G, L, r, _ = model.residual(p, R, y, w)
+    G, P = model.fk(p, R)
+    x = model.markers(p, R)
+    L = x - P[..., None]
+    r = x - y
     rows_J, rows_r, rows_w = [], [], []
     for s in range(S):
         for k in range(model.K):
@@ -562,16 +661,16 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
     return Rf
 
 
-def _root_from_rotations(model: _Model, R: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Root position (F, 3) given rotations R (S, F, 3, 3): the weighted mean of the
-    observed markers minus the FK at p = 0; frames without markers interpolated.
-    ``y`` (S, F, 3, K) and ``w`` (S, F, K) in slot layout."""
+def _root_from_rotations(model: _Model, R: np.ndarray, st: dict[str, np.ndarray]) -> np.ndarray:
+    """Root position (F, 3) given rotations R (S, F, 3, 3): the weighted mean offset of
+    the observed markers from the model at p = 0; frames without markers interpolated."""
     F = R.shape[1]
-    _, P, L = model.fk(np.zeros((F, 3)), R)
-    d = y - L - P[..., None]
-    W = w.sum((0, 2))
-    p = np.einsum("sfk,sfik->fi", w, d) / np.where(W > 0, W, 1.0)[:, None]
-    return _interp_fill(p, W > 0)
+    _, P = model.fk(np.zeros((F, 3)), R)
+    W = st["W"]
+    d = st["ybar"] - _mv(R, st["lbar"]) - P
+    Wt = W.sum(0)
+    p = np.einsum("sf,sfi->fi", W, d) / np.where(Wt > 0, Wt, 1.0)[:, None]
+    return _interp_fill(p, Wt > 0)
 
 
 # --------------------------------------------------------------------------- solver
@@ -717,8 +816,9 @@ def solve_ik(
         R = np.ascontiguousarray(_project_so3(init_rot[:, tree.perm]).transpose(1, 0, 2, 3))
     y = model.pack(yt)  # (S, F, 3, K)
     w = model.pack(w)  # (S, F, K)
+    st = model.stats(y, w)
     if init_root is None:
-        p = _root_from_rotations(model, R, y, w)
+        p = _root_from_rotations(model, R, st)
     else:
         p = np.array(init_root, dtype=float)
         if p.shape != (F, 3) or not np.isfinite(p).all():
@@ -728,11 +828,13 @@ def solve_ik(
     pts = np.concatenate([model.origin, model.origin[seg] + model.local])
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
     floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
+    # rounding level of the cost (it is computed from centred sums)
+    cost_eps = 1e-11 * (st["c0"].sum(0) + 1.0)
 
     R_prior_T = np.ascontiguousarray(np.swapaxes(R_prior, -1, -2))
-    G, L, r, cost = model.residual(p, R, y, w)
+    G, P, cost = model.cost(p, R, st)
     e = _log(R @ R_prior_T)  # (S, F, 3)
-    cost += pw * (e * e).sum((0, 2))
+    cost += pw * _dot(e, e).sum(0)
     lam = np.full(F, float(damping))
     converged = np.zeros(F, dtype=bool)
     n_iter = 0
@@ -742,29 +844,30 @@ def solve_ik(
         n_iter += 1
         if converged.any():
             act = np.flatnonzero(~converged)
-            pa, Ra, Ga, La, ra, ea = p[act], R[:, act], G[:, act], L[:, act], r[:, act], e[:, act]
-            wa, ya, RpT = w[:, act], y[:, act], R_prior_T[:, act]
+            pa, Ra, Ga, Pa, ea, RpT = p[act], R[:, act], G[:, act], P[:, act], e[:, act], R_prior_T[:, act]
+            sta = {k: v[:, act] for k, v in st.items()}
         else:
             act = slice(None)
-            pa, Ra, Ga, La, ra, ea, wa, ya, RpT = p, R, G, L, r, e, w, y, R_prior_T
-        dp, dr = model.step(Ra, Ga, La, ra, wa, ea, pw, lam[act], floor)
+            pa, Ra, Ga, Pa, ea, RpT, sta = p, R, G, P, e, R_prior_T, st
+        dp, dr = model.step(Ra, Ga, Pa, sta, ea, pw, lam[act], floor)
         p_new = pa + dp
         R_new = _exp(dr) @ Ra
-        G2, L2, r2, c2 = model.residual(p_new, R_new, ya, wa)
+        G2, P2, c2 = model.cost(p_new, R_new, sta)
         e2 = _log(R_new @ RpT)
-        c2 += pw * (e2 * e2).sum((0, 2))
-        ok = c2 <= cost[act] * (1 + 1e-12)
-        step = np.maximum(np.abs(dp).max(1), scale * np.abs(dr).max((0, 2)))
+        c2 += pw * _dot(e2, e2).sum(0)
+        ok = c2 <= cost[act] + cost_eps[act]
+        step = np.sqrt(np.maximum(_dot(dp, dp), scale**2 * _dot(dr, dr).max(0)))
         if ok.all() and isinstance(act, slice):
-            p, R, G, L, r, e, cost = p_new, R_new, G2, L2, r2, e2, c2
+            p, R, G, P, e, cost = p_new, R_new, G2, P2, e2, c2
         else:
             idx = np.arange(F)[act][ok]
-            p[idx], R[:, idx], G[:, idx], L[:, idx], r[:, idx], e[:, idx], cost[idx] = (
-                p_new[ok], R_new[:, ok], G2[:, ok], L2[:, ok], r2[:, ok], e2[:, ok], c2[ok]
+            p[idx], R[:, idx], G[:, idx], P[:, idx], e[:, idx], cost[idx] = (
+                p_new[ok], R_new[:, ok], G2[:, ok], P2[:, ok], e2[:, ok], c2[ok]
             )
         lam[act] = np.where(ok, np.maximum(lam[act] * 0.3, 1e-12), lam[act] * 10)
         converged[act] = step <= tol
 
+    r = model.markers(p, R) - y
     res = np.full((F, M), np.nan)
     res[:, used] = np.where(seen, model.unpack(np.sqrt((r * r).sum(2))), np.nan)
     rot = np.empty((F, S, 3, 3))

@@ -38,10 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["JointFit", "joint_cost", "jmv_joint", "pair_cost", "algebraic_init", "nearest_midpoint"]
+__all__ = ["JointFit", "joint_cost", "joint_cost_grad", "jmv_joint", "pair_cost", "algebraic_init", "nearest_midpoint"]
 
-#: Distances below this fraction of the data's scale are treated as zero when
-#: normalising directions (a joint sitting exactly on a marker).
+#: Floor for distances when normalising directions (a joint exactly on a marker).
 _TINY = 1e-300
 
 
@@ -97,6 +96,25 @@ def _stack(markers_a: ArrayLike, markers_b: ArrayLike) -> np.ndarray:
     return np.concatenate([a, b], axis=1)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products along the last axis (faster than np.cross for small arrays)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _inv3(A: np.ndarray) -> np.ndarray:
+    """Inverses of (F, 3, 3) matrices by the adjugate (fast for many tiny matrices)."""
+    adj = _adj3(A)
+    det = (A[:, 0] * adj[:, :, 0]).sum(1)
+    bad = ~(np.abs(det) > 0)
+    if bad.any():  # singular blocks: pseudo-inverses
+        out = adj / np.where(bad, 1.0, det)[:, None, None]
+        out[bad] = np.linalg.pinv(A[bad])
+        return out
+    return adj / det[:, None, None]
+
+
 def _cost_terms(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float):
     """Distances and Q. c (F,3), pts (F,M,3), valid (F,M) (c finite already folded in).
 
@@ -144,19 +162,58 @@ def joint_cost(c: ArrayLike, markers: ArrayLike, alpha: float = 0.0) -> float:
     return _cost_terms(c, pts, valid, float(alpha))[0]
 
 
+def joint_cost_grad(c: ArrayLike, markers: ArrayLike, alpha: float = 0.0) -> tuple[float, np.ndarray]:
+    """Kirk's Q and its analytic gradient with respect to every joint position.
+
+    ``dQ/dc_f = 1/N' sum_m 1/|m| (2 (d_fm - dbar_m) + alpha) u_fm`` with
+    ``d_fm = |c_f - m_f|`` and ``u_fm = (c_f - m_f) / d_fm`` (the derivative
+    of ``dbar`` drops out of the variance term because deviations sum to zero).
+
+    Parameters
+    ----------
+    c : (F, 3) ndarray
+        Joint positions; NaN rows are left out.
+    markers : (F, N, 3) ndarray
+        Markers of both segments; NaN where not seen.
+    alpha : float
+        Mean-distance penalty.
+
+    Returns
+    -------
+    q : float
+        As :func:`joint_cost`.
+    grad : (F, 3) ndarray
+        dQ/dc; NaN rows where ``c`` is NaN.
+    """
+    c = np.asarray(c, dtype=float)
+    pts = _as_points(markers, "markers")
+    if c.shape != (pts.shape[0], 3):
+        raise ValueError(f"c must be ({pts.shape[0]}, 3), got {c.shape}")
+    cok = np.isfinite(c).all(-1)
+    valid = np.isfinite(pts).all(-1) & cok[:, None]
+    cc = np.where(cok[:, None], c, 0.0)
+    q, d, diff, n, dbar, used = _cost_terms(cc, pts, valid, float(alpha))
+    k = max(int(used.sum()), 1)
+    w = np.where(used, 1.0 / (k * np.maximum(n, 1)), 0.0)
+    coef = np.where(valid, w * (2.0 * (d - dbar) + alpha) / np.maximum(d, _TINY), 0.0)
+    grad = (coef[..., None] * diff).sum(1)
+    grad[~cok] = np.nan
+    return q, grad
+
+
 # --------------------------------------------------------------------------- initial guesses
 
 
-def nearest_midpoint(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray:
+def nearest_midpoint(markers_a: ArrayLike, markers_b: ArrayLike) -> np.ndarray:
     """(F, 3) midpoint of the closest pair (one marker of each group) per frame.
 
     The pair is the one with the smallest mean distance over the frames in which
     both are seen; frames where that pair is not seen fall back to the mean of
     the visible markers of both groups (NaN when none is seen).
     """
-    a, b = markers_a, markers_b
-    F = a.shape[0]
-    both = np.concatenate([a, b], axis=1)
+    a = _as_points(markers_a, "markers_a")
+    b = _as_points(markers_b, "markers_b")
+    both = _stack(a, b)
     vis = np.isfinite(both).all(-1)
     cnt = vis.sum(1)
     fallback = np.where(cnt[:, None] > 0, np.nansum(np.where(vis[..., None], both, 0.0), 1)
@@ -170,14 +227,12 @@ def nearest_midpoint(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray
     i, j = np.unravel_index(int(np.argmin(mean)), mean.shape)
     mid = 0.5 * (a[:, i] + b[:, j])
     ok = np.isfinite(mid).all(-1)
-    out = np.where(ok[:, None], mid, fallback)
-    assert out.shape == (F, 3)
-    return out
+    return np.where(ok[:, None], mid, fallback)
 
 
 def _adj3(A: np.ndarray) -> np.ndarray:
     """Adjugates of (F, 3, 3) matrices: ``A @ adj(A) = det(A) I``."""
-    return np.stack([np.cross(A[:, 1], A[:, 2]), np.cross(A[:, 2], A[:, 0]), np.cross(A[:, 0], A[:, 1])], axis=2)
+    return np.stack([_cross(A[:, 1], A[:, 2]), _cross(A[:, 2], A[:, 0]), _cross(A[:, 0], A[:, 1])], axis=2)
 
 
 def _four_point_init(q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -237,6 +292,36 @@ def _four_point_init(q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     t = roots[np.argmin(np.polyval(quart, roots))]
     delta = d0 + t * dv
     s0 = z0[9] + t * v[9]
+    # Gauss-Newton on the four unlifted unknowns (delta, s0): the lifted solve
+    # ignores that its quadratic block is delta delta^T, which costs accuracy
+    # with noisy data.
+    QmW = Qm / rs[:, None, None]
+    detW = det**2 / rs
+    th = np.concatenate([delta, [s0]])
+
+    def resid(th: np.ndarray) -> np.ndarray:
+        dn = th[:3] - n
+        return np.einsum("fi,fij,fj->f", dn, QmW, dn) - detW * th[3]
+
+    r = resid(th)
+    for _ in range(20):
+        dn = th[:3] - n
+        Jm = np.concatenate([2.0 * np.einsum("fij,fj->fi", QmW, dn), -detW[:, None]], axis=1)
+        step = np.linalg.lstsq(Jm, -r, rcond=None)[0]
+        lam = 1.0
+        while lam > 1e-4:
+            r_new = resid(th + lam * step)
+            if r_new @ r_new <= r @ r:
+                break
+            lam *= 0.5
+        else:
+            break
+        th = th + lam * step
+        small = np.abs(lam * step).max() <= 1e-13 * max(np.abs(th).max(), 1e-300)
+        r = r_new
+        if small:
+            break
+    delta, s0 = th[:3], th[3]
     good = np.abs(det) > 1e-3 * np.median(np.abs(det))
     cc = np.full((int(seen.sum()), 3), np.nan)
     cc[good] = qq[good, 0] + np.einsum("fij,fj->fi", Ad[good], delta - n[good]) / det[good, None]
@@ -313,11 +398,11 @@ def _mtb_init(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray | None:
     from .mtb import mtb_basis, mtb_joint  # local: mtb imports this module
 
     best: JointFit | None = None
-    for side in (a, b):
+    for side, name in ((a, "a"), (b, "b")):
         if side.shape[1] >= 3:
             basis = mtb_basis(side)
             if basis:
-                fit = mtb_joint(basis.points, a, b, alpha=alpha)
+                fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name)
                 if fit and (best is None or fit.cost < best.cost):
                     best = fit
     return None if best is None else best.centre
@@ -422,7 +507,7 @@ def jmv_joint(
         c, q, n_iter, converged, radii = _jmv_lm(c0[act], pts[act], vis[act], alpha, max_iter, tol)
         if best is None or q < best[1]:
             best = (act, q, n_iter, converged, radii, c)
-        if q - alpha * alpha / 4.0 <= 1e-26 * max(scale2, 1e-300):
+        if q - alpha * alpha / 4.0 <= 1e-24 * max(scale2, 1e-300):
             break  # an exact fit: no other start can do better
     if best is None:
         return JointFit(nan, np.inf, 0, False, "no usable starting point")
@@ -456,25 +541,25 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
         rho = dbar - alpha / 2.0
         u = diff / np.maximum(d, _TINY)[..., None]  # (F, M, 3)
         r = np.where(valid, d - rho, 0.0)
-        A = np.einsum("fm,fmi,fmj->fij", wv, u, u)  # (F,3,3)
-        gc = np.einsum("fm,fm,fmi->fi", wv, r, u)  # (F,3)
-        Bm = -(wv[..., None] * u)  # (F, M, 3): B[f][:, m] = Bm[f, m]
+        wu = wv[..., None] * u  # (F, M, 3)
+        A = np.matmul(np.swapaxes(wu, 1, 2), u)  # (F, 3, 3) = sum_m w u u^T
+        gc = (r[..., None] * wu).sum(1)  # (F, 3)
+        Bt = -np.swapaxes(wu, 1, 2)  # (F, 3, M): B[f][:, m] = -w u
         D = wv.sum(0)  # (M,)
         grho = -(wv * r).sum(0) + np.where(used, alpha / (2.0 * k), 0.0)
         damp_base = np.maximum(np.trace(A, axis1=1, axis2=2) / 3.0, 1e-30 * k)
         accepted = False
         while not accepted:
-            Ad = A + (mu * damp_base)[:, None, None] * np.eye(3)
-            Ai = np.linalg.inv(Ad)
-            AiB = np.einsum("fij,fmj->fim", Ai, Bm)  # (F,3,M)
-            Aig = np.einsum("fij,fj->fi", Ai, gc)
-            S = np.diag(D * (1.0 + mu) + np.where(used, 0.0, 1.0)) - np.einsum("fmi,fin->mn", Bm, AiB)
-            rhs = -grho + np.einsum("fmi,fi->m", Bm, Aig)
+            Ai = _inv3(A + (mu * damp_base)[:, None, None] * np.eye(3))
+            AiB = np.matmul(Ai, Bt)  # (F, 3, M)
+            Aig = np.matmul(Ai, gc[..., None])  # (F, 3, 1)
+            S = np.diag(D * (1.0 + mu) + np.where(used, 0.0, 1.0)) - np.matmul(np.swapaxes(Bt, 1, 2), AiB).sum(0)
+            rhs = -grho + np.matmul(np.swapaxes(Bt, 1, 2), Aig).sum(0)[:, 0]
             try:
                 drho = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:
                 drho = np.linalg.lstsq(S, rhs, rcond=None)[0]
-            dc = -(Aig + np.einsum("fim,m->fi", AiB, drho))
+            dc = -(Aig[..., 0] + AiB @ drho)
             c_new = c + dc
             q_new, d_new, diff_new, dbar_new = evaluate(c_new)
             # Q already holds the optimal radii for c_new (variable projection), so it
@@ -485,7 +570,7 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
                 dq = q - q_new
                 c, q, d, diff, dbar = c_new, q_new, d_new, diff_new, dbar_new
                 mu = max(mu / 3.0, 1e-12)
-                if dq <= tol * max(q - const, 0.0) or step <= tol * scale or q - const <= 1e-30 * scale * scale:
+                if dq <= tol * max(q - const, 0.0) or step <= tol * scale or q - const <= (1e-14 * scale) ** 2:
                     converged = True
             else:
                 mu *= 4.0
@@ -494,7 +579,7 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
                     break
         if converged:
             break
-    return c, q, it, converged, dbar
+    return c, q, it, converged, np.where(used, dbar, np.nan)
 
 
 # --------------------------------------------------------------------------- topology
@@ -546,15 +631,15 @@ def pair_cost(
 
     best = np.inf
     tried = False
-    for side in (a, b):
+    for side, name in ((a, "a"), (b, "b")):
         if side.shape[1] >= 3:
             basis = mtb_basis(side)
             if basis:
                 tried = True
-                fit = mtb_joint(basis.points, a, b, alpha=alpha)
+                fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name)
                 if np.isfinite(fit.cost):
                     best = min(best, fit.cost)
     if tried and np.isfinite(best):
         return float(best)
-    fit = jmv_joint(a, b, alpha=alpha, init="nearest", max_iter=50, tol=1e-8)
+    fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-8)
     return float(fit.cost)

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _as_points, _cost_terms, _stack
+from .jmv import JointFit, _as_points, _cost_terms, _cross, _stack
 
 __all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
 
@@ -71,7 +71,9 @@ class Basis:
         Median over frames of the group's principal spreads ``s2/s1, s3/s1``
         (NaN when undefined). ``s2/s1 < tol``: collinear; ``s3/s1 < tol``: coplanar.
     coplanar : bool
-        All points in a plane (the third axis is then the auxiliary marker alone).
+        All points in a plane (always so for three points): Hang's basis would
+        need the auxiliary marker (9), which this basis uses for its third axis
+        in any case.
     coverage : float
         Fraction of frames with a basis.
     """
@@ -104,7 +106,7 @@ def _frame_coeffs(Xref: np.ndarray, vmask: np.ndarray, axes: np.ndarray, s: floa
     if sv.size < 2 or sv[0] <= 0 or sv[1] < tol * sv[0]:
         return None
     w1, w2 = Wt[0], Wt[1]
-    W = np.stack([w1, w2, np.cross(w1, w2)], axis=1)  # columns
+    W = np.stack([w1, w2, _cross(w1, w2)], axis=1)  # columns
     Y = Y0 @ W[:, :2]
     G = Y @ np.linalg.inv(Y.T @ Y)  # (nv, 2)
     beta = np.empty((4, 3))
@@ -144,7 +146,8 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
         return Basis(empty, False, f"no frame sees all {N} points of the group together")
     idx = full[np.unique(np.linspace(0, full.size - 1, min(n_ref, full.size)).round().astype(int))]
     X = P[idx] - P[idx].mean(1, keepdims=True)
-    sv = np.linalg.svd(X, compute_uv=False)  # (K, 3)
+    ev = np.linalg.eigvalsh(np.matmul(np.swapaxes(X, 1, 2), X))  # (K, 3) ascending
+    sv = np.sqrt(np.maximum(ev[:, ::-1], 0.0))  # singular values, descending
     s1 = np.where(sv[:, 0] > 0, sv[:, 0], np.nan)
     if not np.isfinite(s1).any():
         return Basis(empty, False, "all points coincide", special=True)
@@ -159,7 +162,7 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
         return Basis(empty, False, f"collinear points (s2/s1 = {r2:.2g} < {tol:g}): special group",
                      special=True, pair=np.array(sorted((int(i), int(j)))), ratios=ratios)
     _, svr, Vt = np.linalg.svd(Xref, full_matrices=False)
-    axes = np.stack([Vt[0], Vt[1], np.cross(Vt[0], Vt[1])], axis=1)
+    axes = np.stack([Vt[0], Vt[1], _cross(Vt[0], Vt[1])], axis=1)
     s = float(np.sqrt((Xref**2).sum(1).mean()))
 
     out = np.full((F, 4, 3), np.nan)
@@ -187,12 +190,12 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
         if fr is None:
             fr = slice(None)
         oV = PV.mean(1)
-        b12 = np.einsum("fji,jk->fik", PV - oV[:, None], G)  # (f, 3, 2)
-        b3 = np.cross(b12[:, :, 0], b12[:, :, 1])
+        b12 = np.matmul(np.swapaxes(PV - oV[:, None], 1, 2), G)  # (f, 3, 2)
+        b3 = _cross(b12[:, :, 0], b12[:, :, 1])
         Bf = np.concatenate([b12, b3[:, :, None]], axis=2)  # (f, 3, 3), columns b1 b2 b3
         origin = oV + Bf @ beta[0]
         out[fr, 0] = origin
-        out[fr, 1:] = origin[:, None, :] + np.einsum("fik,jk->fji", Bf, beta[1:])
+        out[fr, 1:] = origin[:, None, :] + np.swapaxes(Bf @ beta[1:].T, 1, 2)
     cov = float(np.isfinite(out).all((1, 2)).mean()) if F else 0.0
     return Basis(out, True, "", False, None, ratios, bool(r3 < tol), cov)
 
@@ -203,21 +206,27 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
 def _linear_start(o: np.ndarray, E: np.ndarray, pts: np.ndarray, valid: np.ndarray):
     """Closed-form lambda from distance constancy (exact for noise-free rigid data).
 
-    Returns (lambda (3,), singular values (3,)).
+    Returns (lambda (3,), singular values (3,) of the centred system, and the
+    norm of the uncentred one, for judging the rank).
     """
     v = np.where(valid[..., None], o[:, None, :] - pts, 0.0)  # (F, M, 3)
-    x = 2.0 * np.einsum("fik,fmi->fmk", E, v)  # E^T v
+    x = 2.0 * np.matmul(v, E)  # (F, M, 3): E^T v per point
     y = -np.einsum("fmi,fmi->fm", v, v)
     n = valid.sum(0)
     w = np.where(n > 0, 1.0 / np.maximum(n, 1), 0.0)
     wv = np.where(valid, w, 0.0)
-    xbar = np.einsum("fm,fmk->mk", wv, x)
+    xbar = (wv[..., None] * x).sum(0)
     ybar = (wv * y).sum(0)
     sw = np.sqrt(wv)
+    ref = float(np.sqrt((wv[..., None] * x * x).sum()))
     X = (sw[..., None] * (x - xbar)).reshape(-1, 3)
     Y = (sw * (y - ybar)).reshape(-1)
-    lam, _, _, svals = np.linalg.lstsq(X, Y, rcond=None)
-    return lam, svals
+    N = X.T @ X
+    ev, V = np.linalg.eigh(N)  # ascending
+    svals = np.sqrt(np.maximum(ev[::-1], 0.0))
+    keep = ev > 1e-13 * max(ev[-1], 1e-300) if ev[-1] > 0 else np.zeros(3, bool)
+    lam = V[:, keep] @ ((V[:, keep].T @ (X.T @ Y)) / ev[keep])  # minimum-norm least squares
+    return lam, svals, ref
 
 
 def mtb_joint(
@@ -229,6 +238,7 @@ def mtb_joint(
     max_iter: int = 50,
     tol: float = 1e-12,
     rank_tol: float = 1e-8,
+    basis_side: str | None = None,
 ) -> JointFit:
     """Joint between two segments as an affine combination of a basis (Hang (6)-(8)).
 
@@ -250,6 +260,12 @@ def mtb_joint(
         The joint counts as undetermined (``ok`` False) when the linear start's
         smallest singular value is below ``rank_tol`` times the largest, e.g.
         a hinge moved about one axis only (and ``alpha`` is 0).
+    basis_side : {"a", "b"}, optional
+        The group the basis rides on. Its own points keep constant distances
+        to any point of the basis, so they carry no information about
+        lambda: when given, the closed-form start uses the other group's
+        points only (they all still enter Q), and a joint whose other group is
+        never seen with the basis is reported as such.
 
     Returns
     -------
@@ -272,8 +288,19 @@ def mtb_joint(
     o = np.where(bok[:, None], o, 0.0)
     E = np.where(bok[:, None, None], E, 0.0)
 
-    lam, svals = _linear_start(o, E, pts, valid)
-    ranked = svals.size == 3 and svals[0] > 0 and svals[2] >= rank_tol * svals[0]
+    informative = valid
+    if basis_side is not None:
+        if basis_side not in ("a", "b"):
+            raise ValueError(f"basis_side must be 'a', 'b' or None, got {basis_side!r}")
+        na = np.asarray(markers_a).shape[1]
+        informative = valid.copy()
+        informative[:, :na] = basis_side == "b"
+        informative[:, na:] = basis_side == "a"
+        informative &= valid
+        if not informative.any():
+            return JointFit(nan, np.inf, 0, False, "no point of the other group is seen with the basis")
+    lam, svals, ref = _linear_start(o, E, pts, informative)
+    ranked = svals[0] > 1e-9 * ref and svals[2] >= rank_tol * svals[0]
     scale = float(np.sqrt(np.einsum("fij,fij->f", E, E)[bok].mean() / 3.0))  # basis size
 
     c = o + E @ lam
@@ -285,17 +312,20 @@ def mtb_joint(
     const = alpha * alpha / 4.0
     mu = 1e-4
     it = 0
-    converged = q - const <= 1e-30 * max(scale, 1.0) ** 2 * max(np.abs(lam).max(), 1.0) ** 2
+    # an exact fit (noise-free data): distances constant to ~1e-12 relative
+    tiny = (1e-12 * max(scale, float(np.nanmax(np.where(used, dbar, 0.0))))) ** 2
+    converged = q - const <= tiny
     while not converged and it < max_iter:
         it += 1
         u = diff / np.maximum(d, 1e-300)[..., None]
-        ju = np.einsum("fik,fmi->fmk", E, u)  # (F, M, 3)
+        ju = np.matmul(u, E)  # (F, M, 3): d|c - m| / d lambda
         r = np.where(valid, d - (dbar - alpha / 2.0), 0.0)
-        H = np.einsum("fm,fmi,fmj->ij", wv, ju, ju)
-        h = np.einsum("fm,fmi->mi", wv, ju)
+        wju = wv[..., None] * ju
+        H = wju.reshape(-1, 3).T @ ju.reshape(-1, 3)
+        h = wju.sum(0)  # (M, 3)
         Dm = wv.sum(0)
-        S = H - np.einsum("mi,mj,m->ij", h, h, np.where(used, 1.0 / np.maximum(Dm, 1e-300), 0.0))
-        g = np.einsum("fm,fm,fmi->i", wv, r, ju)
+        S = H - (h * np.where(used, 1.0 / np.maximum(Dm, 1e-300), 0.0)[:, None]).T @ h
+        g = (r[..., None] * wju).sum((0, 1))
         diagS = np.maximum(np.diag(S), 1e-30 * max(np.trace(S), 1e-300))
         while True:
             try:

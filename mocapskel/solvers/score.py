@@ -593,53 +593,55 @@ def _adjugate_columns(a):
 
 
 def _horn(S: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """Rotations maximising sum b.(R a), from S = sum a b^T (F, 3, 3) of centred points.
+    """Rotations (F, 3, 3) maximising sum b.(R a), from the 9 components of S = sum a b^T.
 
-    Horn's unit-quaternion method, vectorised: the largest eigenvalue of the
-    4x4 key matrix by Newton's method on its characteristic polynomial from
-    the upper bound G = (sum |a|^2 + sum |b|^2) / 2 (Theobald's QCP), and the
-    eigenvector as the largest column of the adjugate of (N - lambda I).
-    Exact for every non-collinear configuration, including planar ones (3
-    markers), and several times faster than batched 3x3 SVDs.
+    S is (9, F): ``S[3 i + j]`` is the (i, j) entry for every frame (centred
+    points a of the reference and b of the observation).
+
+    Horn's unit-quaternion method, vectorised over frames: the largest
+    eigenvalue of the 4x4 key matrix N by Newton's method on its
+    characteristic polynomial, started from the upper bound
+    G = (sum |a|^2 + sum |b|^2) / 2 (Theobald's QCP), and the eigenvector as
+    the largest column of adj(N - lambda I). Exact for every non-collinear
+    configuration, planar ones (3 markers) included, and several times faster
+    than batched 3x3 SVDs.
     """
-    Sxx, Sxy, Sxz = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    Syx, Syy, Syz = S[:, 1, 0], S[:, 1, 1], S[:, 1, 2]
-    Szx, Szy, Szz = S[:, 2, 0], S[:, 2, 1], S[:, 2, 2]
+    F = S.shape[1]
+    Sxx, Sxy, Sxz, Syx, Syy, Syz, Szx, Szy, Szz = S
     n01, n02, n03 = Syz - Szy, Szx - Sxz, Sxy - Syx
     n12, n13, n23 = Sxy + Syx, Szx + Sxz, Syz + Szy
-    diag = (Sxx + Syy + Szz, Sxx - Syy - Szz, -Sxx + Syy - Szz, -Sxx - Syy + Szz)
+    diag = (Sxx + Syy + Szz, Sxx - Syy - Szz, Syy - Sxx - Szz, Szz - Sxx - Syy)
     off = ((None, n01, n02, n03), (n01, None, n12, n13), (n02, n12, None, n23), (n03, n13, n23, None))
     N = [[diag[i] if i == j else off[i][j] for j in range(4)] for i in range(4)]
     s, c = _minors(N)
     c0 = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]  # det N
     c1 = -8 * (Sxx * (Syy * Szz - Syz * Szy) - Sxy * (Syx * Szz - Syz * Szx) + Sxz * (Syx * Szy - Syy * Szx))
-    c2 = -2 * np.einsum("fij,fij->f", S, S)
-    lam = G.copy()
+    c2 = -2 * np.einsum("kf,kf->f", S, S)
+    lam = np.array(G, dtype=float)
     for _ in range(60):  # converges monotonically from above, quadratically near the root
         l2 = lam * lam
         dp = 4 * l2 * lam + 2 * c2 * lam + c1
         step = ((l2 + c2) * l2 + c1 * lam + c0) / np.where(dp != 0, dp, 1.0)
-        lam = lam - step
+        lam -= step
         if np.all(np.abs(step) <= 1e-15 * np.abs(lam)):
             break
     A = [[N[i][j] - lam if i == j else N[i][j] for j in range(4)] for i in range(4)]
-    Q = np.stack([np.stack(col, 1) for col in _adjugate_columns(A)], 1)  # (F, column, component)
-    nrm = np.einsum("fji,fji->fj", Q, Q)
-    best = np.argmax(nrm, 1)
-    rows = np.arange(S.shape[0])
-    q = Q[rows, best] / np.sqrt(nrm[rows, best])[:, None]
-    q0, qx, qy, qz = q.T
-    R = np.empty((S.shape[0], 3, 3))
-    R[:, 0, 0] = q0 * q0 + qx * qx - qy * qy - qz * qz
-    R[:, 0, 1] = 2 * (qx * qy - q0 * qz)
-    R[:, 0, 2] = 2 * (qx * qz + q0 * qy)
-    R[:, 1, 0] = 2 * (qy * qx + q0 * qz)
-    R[:, 1, 1] = q0 * q0 - qx * qx + qy * qy - qz * qz
-    R[:, 1, 2] = 2 * (qy * qz - q0 * qx)
-    R[:, 2, 0] = 2 * (qz * qx - q0 * qy)
-    R[:, 2, 1] = 2 * (qz * qy + q0 * qx)
-    R[:, 2, 2] = q0 * q0 - qx * qx - qy * qy + qz * qz
-    return R
+    cols = _adjugate_columns(A)
+    nrm = np.array([col[0] ** 2 + col[1] ** 2 + col[2] ** 2 + col[3] ** 2 for col in cols])  # (4, F)
+    best = np.argmax(nrm, 0)
+    scale = 1.0 / np.sqrt(np.choose(best, nrm))
+    q0, qx, qy, qz = (np.choose(best, [col[k] for col in cols]) * scale for k in range(4))
+    R = np.empty((3, 3, F))
+    R[0, 0] = q0 * q0 + qx * qx - qy * qy - qz * qz
+    R[0, 1] = 2 * (qx * qy - q0 * qz)
+    R[0, 2] = 2 * (qx * qz + q0 * qy)
+    R[1, 0] = 2 * (qy * qx + q0 * qz)
+    R[1, 1] = q0 * q0 - qx * qx + qy * qy - qz * qz
+    R[1, 2] = 2 * (qy * qz - q0 * qx)
+    R[2, 0] = 2 * (qz * qx - q0 * qy)
+    R[2, 1] = 2 * (qz * qy + q0 * qx)
+    R[2, 2] = q0 * q0 - qx * qx - qy * qy + qz * qz
+    return np.ascontiguousarray(R.transpose(2, 0, 1))
 
 
 def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -656,7 +658,8 @@ def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cb = sum(obs[:, p] for p in range(P)) / P  # loop over markers, not frames
         a = ref - ca[0]
         b = obs - cb[:, None]
-        S = np.tensordot(a, b, axes=([0], [1])).transpose(1, 0, 2)  # (F, 3, 3) = sum_p a b^T
+        X = a.T @ b.transpose(1, 0, 2).reshape(P, 3 * F)  # (3, 3F): X[i, 3f + j] = S_ij(f)
+        S = np.ascontiguousarray(X.reshape(3, F, 3).transpose(0, 2, 1)).reshape(9, F)
         ga = np.full(F, np.einsum("pi,pi->", a, a))
         C = np.broadcast_to(a.T @ a, (F, 3, 3))
     else:
@@ -668,7 +671,7 @@ def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a = np.where(vis[..., None], ref[None] - ca[:, None], 0.0)
         b = np.where(vis[..., None], obs - cb[:, None], 0.0)
         at = a.transpose(0, 2, 1)
-        S = np.matmul(at, b)
+        S = np.ascontiguousarray(np.matmul(at, b).reshape(F, 9).T)
         ga = np.einsum("fpi,fpi->f", a, a)
         C = np.matmul(at, a)
     # collinear: the second elementary symmetric function of the visible
@@ -683,7 +686,7 @@ def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R = np.full((F, 3, 3), np.nan)
     t = np.full((F, 3), np.nan)
     if good.any():
-        Rg = _horn(S[good], G[good])
+        Rg = _horn(S[:, good], G[good])
         R[good] = Rg
         t[good] = cb[good] - _rotate(Rg, ca[good])
     return R, t

@@ -12,7 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import warnings
+
 import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.spatial.distance import squareform
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
@@ -38,6 +42,13 @@ class Params:
     """Width of the Gaussian that turns a distance std into an affinity; None:
     chosen from the data (the width, among a few fractions of the spread of the
     stds, that gives the clearest eigen-gap)."""
+    rigid_mm: float = 8.0
+    """Automatic count: a group in which half of the marker pairs vary in
+    distance more than this (std, mm) is split further; if fewer than 5 % of
+    all pairs vary more than this, the take is one rigid body."""
+    rigid_frac: float = 0.02
+    """...or more than this fraction of the median marker distance, if smaller
+    (so the test does not depend on the take's units or size)."""
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
     seed: int = 0
@@ -92,7 +103,33 @@ def affinity(std: np.ndarray, sigma: float) -> np.ndarray:
     return W
 
 
-SIGMA_FRACTIONS = (0.03, 0.06, 0.12, 0.25, 0.5)
+SCALE_PERCENTILE = 25
+SIGMA_FRACTIONS = (0.06, 0.12, 0.25, 0.5, 1.0)
+
+
+def _median_distance(points: np.ndarray) -> float:
+    """Median distance between markers (points (K, M, 3)), over frames and pairs."""
+    d = np.linalg.norm(points[:, :, None] - points[:, None], axis=-1)
+    iu = np.triu_indices(points.shape[1], 1)
+    v = d[:, iu[0], iu[1]]
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else float("nan")
+
+
+def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
+    """Number of groups whose markers' distances vary by at most ``rigid_mm`` on average.
+
+    Average-linkage agglomerative clustering of the distance stds, cut at
+    ``rigid_mm``: the fewest groups that are each rigid within the tolerance.
+    """
+    M = std.shape[0]
+    if M < 2:
+        return M
+    D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
+    D = 0.5 * (D + D.T)
+    np.fill_diagonal(D, 0.0)
+    Z = linkage(squareform(D, checks=False), method="average")
+    return int(fcluster(Z, t=rigid_mm, criterion="distance").max())
 
 
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
@@ -105,13 +142,13 @@ def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[f
     M = std.shape[0]
     off = std[~np.eye(M, dtype=bool)]
     off = off[np.isfinite(off)]
-    scale = float(np.percentile(off, 75)) if off.size else 1.0
+    scale = float(np.percentile(off, SCALE_PERCENTILE)) if off.size else 1.0
     scale = scale if scale > 0 else 1.0
     cands = [sigma] if sigma is not None else [f * scale for f in SIGMA_FRACTIONS]
     best = None
     for sg in cands:
         eig = np.linalg.eigvalsh(normalized_affinity(affinity(std, sg)))[::-1]
-        kk = k if k is not None else eigengap_k(eig, 1, max(1, M - 1))
+        kk = k if k is not None else eigengap_k(eig, min(2, M - 1), max(1, M - 1))
         gap = float(eig[kk - 1] - eig[kk]) if kk < M else float(eig[kk - 1])
         if best is None or gap > best[0] + 1e-9:
             best = (gap, sg, kk, eig)
@@ -138,11 +175,22 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     if use.sum() < 2:
         raise DataError("fewer than two markers are seen often enough to be grouped", markers.source or None)
     iu = np.flatnonzero(use)
-    pooled = np.nanmedian(np.stack(stds), axis=0)[np.ix_(iu, iu)]
+    with warnings.catch_warnings():  # pairs never seen together stay NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        pooled = np.nanmedian(np.stack(stds), axis=0)[np.ix_(iu, iu)]
     k = params.n_segments
+    off = pooled[~np.eye(pooled.shape[0], dtype=bool)]
+    size = _median_distance(markers.points[samplings[0]][:, iu])
+    rigid_mm = min(params.rigid_mm, params.rigid_frac * size) if np.isfinite(size) and size > 0 else params.rigid_mm
+    if k is None and not (np.nanpercentile(off, 95) > rigid_mm if np.isfinite(off).any() else False):
+        raise DataError(
+            f"all markers move as one rigid body (95 % of marker distances vary by less than {rigid_mm:.3g} mm)"
+            " — nothing moves relative to anything, so there is no joint to find",
+            markers.source or None,
+        )
     sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
     if k is None:
-        k = k_auto
+        k = max(2, rigid_count(pooled, rigid_mm))
     if k > iu.size:
         raise DataError(f"asked for {k} segments but only {iu.size} usable markers", markers.source or None)
 

@@ -37,6 +37,19 @@ def subsample(points: np.ndarray, n: int) -> np.ndarray:
     return np.array([a + int(np.argmax(vis[a:b])) for a, b in zip(edges[:-1], edges[1:]) if b > a])
 
 
+def pair_frames(seen_a: np.ndarray, seen_b: np.ndarray, frames: np.ndarray, n: int) -> np.ndarray:
+    """Frames for one pair's cost: the common subsample where both are seen, or,
+    when that leaves too few, up to ``n`` frames spread over all frames where both are."""
+    both = (seen_a > 0) & (seen_b > 0)
+    fr = frames[both[frames]]
+    if fr.size >= min(20, n):
+        return fr
+    allf = np.flatnonzero(both)
+    if allf.size <= n:
+        return allf
+    return allf[np.linspace(0, allf.size - 1, n).round().astype(int)]
+
+
 def tree_centre(tree: nx.Graph, size: dict[int, int]) -> int:
     """The centre of a tree (least eccentricity); ties go to the node with the least total distance, then most markers."""
     ecc = nx.eccentricity(tree)
@@ -53,12 +66,14 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     if S < 2:
         raise DataError("fewer than two segments — nothing to connect", segments.markers.source or None)
     frames = subsample(pts, params.n_frames)
-    sub = pts[frames]
-    groups = [sub[:, segments.members(s)] for s in range(S)]
+    seen = np.stack([np.isfinite(pts[:, segments.members(s)]).all(-1).sum(1) for s in range(S)], axis=1)  # (F, S)
     C = np.full((S, S), np.inf)
     for a in range(S):
         for b in range(a + 1, S):
-            C[a, b] = C[b, a] = pair_cost(groups[a], groups[b], alpha=params.alpha)
+            fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
+            if fr.size:
+                sub = pts[fr]
+                C[a, b] = C[b, a] = pair_cost(sub[:, segments.members(a)], sub[:, segments.members(b)], alpha=params.alpha)
     G = nx.Graph()
     G.add_nodes_from(range(S))
     for a in range(S):

@@ -296,7 +296,8 @@ def add_ghosts(
     F, M = m.points.shape[:2]
     n = int(n_ghosts)
     g = np.full((F, n, 3), np.nan)
-    centre = take.truth.joints.mean(axis=1)  # (F, 3)
+    J = take.truth.joints
+    centre = J.mean(axis=1) if J.shape[1] else np.zeros((F, 3))  # (F, 3)
     for k in range(n):
         dur = max(1, int(round(rng.uniform(*duration_s) * m.rate)))
         dur = min(dur, F)
@@ -321,9 +322,13 @@ def add_ghosts(
         if lab not in taken:
             names.append(lab)
     op = {"op": "add_ghosts", "n_ghosts": n, "duration_s": list(map(float, duration_s)), "radius_mm": float(radius_mm)}
+    info = copy.deepcopy(take.truth.info)
+    if "relabel_source" in info:  # ghosts added after relabelling come from no earlier label
+        info["relabel_source"] = list(info["relabel_source"]) + [-1] * n
     return _rebuild(
         take,
         op,
+        info=info,
         points=np.concatenate([m.points, g], axis=1),
         labels=m.labels + tuple(names),
         marker_segment=np.concatenate([take.truth.marker_segment, np.full(n, -1)]),
@@ -352,7 +357,7 @@ def relabel_passive(take: SynthTake, rng: np.random.Generator, p_new_label: floa
     SynthTake
         ``truth.marker_id`` / ``marker_segment`` map every new label to its
         physical marker / segment; ``truth.info["relabel_source"]`` gives the
-        index of the label it came from. Memory grows with the number of
+        index of the label it came from (-1 for ghosts added afterwards). Memory grows with the number of
         labels: (F, L, 3), mostly NaN.
     """
     pts = take.markers.points
@@ -432,7 +437,7 @@ def drop_markers(take: SynthTake, keep_per_segment: int | Mapping[str, int], rng
     for key in ("rest_markers_mm", "physical_labels"):
         if key in info and len(info[key]) == n_old:
             info[key] = [info[key][i] for i in kept]
-    if "relabel_source" in info:
+    if len(info.get("relabel_source", ())) == tr.marker_id.size:
         info["relabel_source"] = [info["relabel_source"][c] for c in cols]
     info["kept_markers"] = [int(kept_old) for kept_old in kept]
     if isinstance(keep_per_segment, Mapping):

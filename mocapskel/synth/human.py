@@ -20,17 +20,19 @@ Segments (parent first)::
 14 joints, one per non-root segment (named in ``truth.info["joint_names"]``):
 Lumbar, Neck, L/RShoulder, L/RWrist, L/RHip, L/RAnkle are ball joints (3 DoF);
 L/RElbow and L/RKnee are hinges: one large rotation about an anatomical axis
-plus a few degrees of varus/valgus and axial rotation (so that the joint
-centre along the hinge axis stays observable, as on a real knee).
+plus a little varus/valgus and axial rotation (±5° and ±12° by default, the
+``hinge_slack_deg`` of :func:`human_take`), so that the joint centre along the
+hinge axis stays observable, as on a real knee.
 
 Adult proportions for a ~1.75 m subject (hip joints 925 mm above the floor,
 thigh 430, shank 420, upper arm 300, forearm 255 mm, lumbar joint to C7
 ~470 mm); each body part varies by up to ±3 % between subjects, and ``scale``
 multiplies everything.
 
-Markers sit on the skin around each segment, 22–85 mm from a limb's bone
-axis (85–130 mm around the torso and pelvis, ~95 mm around the head), spread
-along it and never on a joint. The default is 48 markers: pelvis, torso and
+Markers sit on the skin around each segment, 25–85 mm from a limb's bone
+axis (85–135 mm around the torso and pelvis, ~95 mm around the head), spread
+along it, at least ~45 mm from any joint; the first three of a segment always
+make a well-shaped triangle (never nearly collinear). The default is 48 markers: pelvis, torso and
 head 4 each, every limb segment 3. Labels are ``<code><k>`` with codes
 ``PELV TRSO HEAD LUPA LFRM LHND RUPA RFRM RHND LTHI LSHN LFOT RTHI RSHN RFOT``
 (e.g. ``LTHI1``). The first ``n`` markers of a segment do not depend on how
@@ -142,13 +144,16 @@ _ROM_BALL = {
     "LHip": ((-20, 45), (-100, 25), (-35, 35)),
     "LAnkle": ((-20, 20), (-25, 45), (-20, 20)),
 }
-# Hinges: axis (left side), flexion range (deg), off-axis half-ranges (deg) of
-# the two components perpendicular to the axis (varus/valgus, axial).
+# Hinges: axis (left side) and flexion range (deg). The off-axis motion (slack)
+# is a parameter of human_take.
 _HINGE = {
-    "LElbow": ((0.05, 1.0, 0.08), (-140.0, -5.0), (4.0, 6.0)),
-    "LKnee": ((0.03, 1.0, -0.03), (0.0, 120.0), (4.0, 8.0)),
+    "LElbow": ((0.05, 1.0, 0.08), (-140.0, -5.0)),
+    "LKnee": ((0.03, 1.0, -0.03), (0.0, 120.0)),
 }
 _SOFT_TISSUE_BAND_HZ = (1.0, 5.0)
+#: The first three markers of a segment are redrawn until their second principal
+#: spread is at least this fraction of the first (no near-collinear clusters).
+_MIN_TRIANGLE = 0.4
 _SOFT_TISSUE_SHARED = 0.3  # fraction of soft-tissue variance shared by a segment's markers
 
 
@@ -192,12 +197,20 @@ def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
 
 def _matmul33(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """(..., 3, 3) @ (..., 3, 3) as three broadcast products (faster than batched matmul)."""
-    return A[..., :, 0, None] * B[..., None, 0, :] + A[..., :, 1, None] * B[..., None, 1, :] + A[..., :, 2, None] * B[..., None, 2, :]
+    return (
+        A[..., :, 0, None] * B[..., None, 0, :]
+        + A[..., :, 1, None] * B[..., None, 1, :]
+        + A[..., :, 2, None] * B[..., None, 2, :]
+    )
 
 
 def _apply33(A: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(F, 3, 3) rotations applied to (P, 3) points -> (F, P, 3)."""
-    return A[:, None, :, 0] * x[None, :, 0, None] + A[:, None, :, 1] * x[None, :, 1, None] + A[:, None, :, 2] * x[None, :, 2, None]
+    return (
+        A[:, None, :, 0] * x[None, :, 0, None]
+        + A[:, None, :, 1] * x[None, :, 1, None]
+        + A[:, None, :, 2] * x[None, :, 2, None]
+    )
 
 
 def _rot_z(angle: np.ndarray) -> np.ndarray:
@@ -289,15 +302,24 @@ def _make_subject(seed: int, counts: Sequence[int], scale: float) -> _Subject:
         d /= np.linalg.norm(d)
         e2 = np.cross(u, d)
         mrng = np.random.default_rng([seed, 1, s])  # per segment: counts elsewhere do not matter
-        u0, u1 = mrng.uniform(size=2)
         half = np.deg2rad(spec.half_deg)
-        for k in range(n):
+
+        def place(k: int, u0: float, u1: float) -> np.ndarray:
             r_k, jt, ja = mrng.uniform(size=3)
             t = spec.t[0] + (spec.t[1] - spec.t[0]) * ((_van_der_corput(k + 1) + u1 + 0.05 * (jt - 0.5)) % 1.0)
-            frac = (u0 + k * golden + 0.03 * (ja - 0.5)) % 1.0
-            a = (2.0 * frac - 1.0) * half
+            a = (2.0 * ((u0 + k * golden + 0.03 * (ja - 0.5)) % 1.0) - 1.0) * half
             r = (spec.r[0] + (spec.r[1] - spec.r[0]) * r_k) * fac[s]
-            rest.append(joint_rest[s] + p0 + t * (p1 - p0) + r * (np.cos(a) * d + np.sin(a) * e2))
+            return joint_rest[s] + p0 + t * (p1 - p0) + r * (np.cos(a) * d + np.sin(a) * e2)
+
+        for _ in range(100):  # the first three markers must make a fat triangle
+            u0, u1 = mrng.uniform(size=2)
+            first = np.array([place(k, u0, u1) for k in range(3)])
+            sv = np.linalg.svd(first - first.mean(0), compute_uv=False)
+            if sv[1] >= _MIN_TRIANGLE * sv[0]:
+                break
+        placed = list(first) + [place(k, u0, u1) for k in range(3, n)]
+        for k in range(n):
+            rest.append(placed[k])
             seg.append(s)
             labels.append(f"{LABEL_CODES[s]}{k + 1}")
     return _Subject(
@@ -369,7 +391,7 @@ def _phase_envelope(rng: np.random.Generator, t: np.ndarray, n_groups: int, base
     return base + (1.0 - base) * ind
 
 
-def _rom_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
+def _rom_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.ndarray):
     """Range-of-motion take: every DoF covers its full range; joints take turns."""
     F = t.size
     groups = {"Lumbar": 0, "Neck": 0, "LShoulder": 1, "LElbow": 1, "LWrist": 1, "RShoulder": 2,
@@ -384,9 +406,8 @@ def _rom_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
         if left in _HINGE:
             a, e1, e2 = _hinge_frame(name)
             lo, hi = _HINGE[left][1]
-            off = np.array(_HINGE[left][2])
             x = _rescale(g * _smooth(rng, t, 1, 0.08, 0.5), lo, hi)[:, 0]
-            y = _rescale(g * _smooth(rng, t, 2, 0.08, 0.5), -off, off)
+            y = _rescale(g * _smooth(rng, t, 2, 0.08, 0.5), -slack, slack)
             rv[:, s] = np.deg2rad(x[:, None] * a + y[:, :1] * e1 + y[:, 1:] * e2)
         else:
             rng_lohi = np.array(_ROM_BALL[left], float)
@@ -404,7 +425,7 @@ def _rom_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
     return root_pos, root_rot, rv
 
 
-def _walk_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
+def _walk_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.ndarray):
     """Walking round a wobbly circle (~1.5 m radius) with random small extra motion."""
     F = t.size
     fc = rng.uniform(0.85, 0.95)  # strides per second
@@ -434,11 +455,14 @@ def _walk_motion(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
         for joint, ang in (("Knee", knee), ("Elbow", -elbow)):
             name = side + joint
             a, e1, e2 = _hinge_frame(name)
-            y = _smooth(rng, t, 2, 0.2, 1.0, k=3) * 0.7
+            y = _rescale(_smooth(rng, t, 2, 0.2, 1.0, k=3), -0.3 * slack, 0.3 * slack)
             rv[:, JOINT_NAMES.index(name) + 1] = deg(ang[:, None] * a + y[:, :1] * e1 + y[:, 1:] * e2)
     phL = 2.0 * np.pi * fc * t + phi0
-    rv[:, 1] = deg(np.column_stack([2.0 * np.cos(phL), 5.0 + 0 * phL, -5.0 * np.sin(phL)]) + _smooth(rng, t, 3, 0.1, 0.5, k=3))
-    rv[:, 2] = deg(_smooth(rng, t, 3, 0.05, 0.3) * np.array([3.0, 4.0, 8.0]) + np.column_stack([0 * phL, 0 * phL, 5.0 * np.sin(phL)]))
+    zero = np.zeros(F)
+    lumbar = np.column_stack([2.0 * np.cos(phL), 5.0 + zero, -5.0 * np.sin(phL)])  # counter-rotation
+    rv[:, 1] = deg(lumbar + _smooth(rng, t, 3, 0.1, 0.5, k=3))
+    neck = np.column_stack([zero, zero, 5.0 * np.sin(phL)])  # keeps looking ahead, looks around
+    rv[:, 2] = deg(neck + _smooth(rng, t, 3, 0.05, 0.3) * np.array([3.0, 4.0, 8.0]))
     pos = radius[:, None] * np.column_stack([np.cos(alpha), np.sin(alpha)])
     if F > 1:
         vel = np.gradient(pos, t, axis=0)
@@ -533,6 +557,7 @@ def human_take(
     noise_mm: float = 0.0,
     soft_tissue_mm: float = 0.0,
     subject_seed: int | None = None,
+    hinge_slack_deg: tuple[float, float] = (5.0, 12.0),
 ) -> SynthTake:
     """A seeded take of a 15-segment human with 48 skin markers and its truth.
 
@@ -571,6 +596,11 @@ def human_take(
         Fix the subject (proportions, marker placement) regardless of ``rng``,
         e.g. ``take.truth.info["subject_seed"]`` of another take, to make
         several takes of one subject.
+    hinge_slack_deg : (2,) floats
+        Half-ranges (deg) of the off-axis rotation of elbows and knees:
+        varus/valgus and axial. They make the joint centre along the flexion
+        axis observable (as on real knees); (0, 0) gives pure hinges. In
+        ``"walk"`` the slack used is 30 % of this.
 
     Returns
     -------
@@ -601,7 +631,10 @@ def human_take(
     subj = _make_subject(sseed, counts, float(scale))
     t = np.arange(n_frames) / float(rate)
     mrng = np.random.default_rng(mseed)
-    root_pos, root_rot, rv = (_rom_motion if motion == "rom" else _walk_motion)(mrng, t, subj)
+    slack = np.array(hinge_slack_deg, dtype=float)
+    if slack.shape != (2,) or (slack < 0).any():
+        raise ValueError(f"hinge_slack_deg must be two non-negative angles, got {hinge_slack_deg}")
+    root_pos, root_rot, rv = (_rom_motion if motion == "rom" else _walk_motion)(mrng, t, subj, slack)
     G, O, pts = _forward(subj, root_pos, root_rot, rv)
     if motion == "walk":  # lower or raise the body so that the lower foot touches the floor
         lift = _floor_lift(subj, G, O)
@@ -645,7 +678,7 @@ def human_take(
         "ball_joints": [j for j in JOINT_NAMES if j not in HINGES],
         "hinges": list(HINGES),
         "hinge_axes": hinge_axes,
-        "hinge_off_axis_deg": {h: list(_HINGE["L" + h[1:]][2]) for h in HINGES},
+        "hinge_off_axis_deg": {h: slack.tolist() for h in HINGES},
         "bone_length_is": "distance from the joint to the mean of the child segment's child joints",
         "part_factor": subj.part_factor,
         "pelvis_height_mm": subj.pelvis_height,

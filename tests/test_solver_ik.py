@@ -1,0 +1,408 @@
+"""Tests of the batched skeleton IK solver, on seeded synthetic skeletons with known motion."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from mocapskel.solvers import ik
+from mocapskel.solvers.ik import solve_ik
+
+# --------------------------------------------------------------------------- synthetic skeletons
+
+
+def make_tree(rng: np.random.Generator, S: int, chain: bool, n_markers) -> tuple[np.ndarray, ...]:
+    """A random tree: parent (S,), origin (S, 3), marker_segment (M,), marker_local (M, 3).
+
+    ``n_markers(s, is_leaf, parent_count)`` gives the number of markers on
+    segment s (``parent_count``: markers on its parent, 0 for the root).
+    Markers sit along the bone towards a child (or a random direction for
+    leaves) and 30-60 mm off its axis.
+    """
+    parent = np.full(S, -1)
+    for s in range(1, S):
+        parent[s] = s - 1 if chain else rng.integers(0, s)
+    origin = np.zeros((S, 3))
+    for s in range(1, S):
+        d = rng.normal(size=3)
+        origin[s] = origin[parent[s]] + d / np.linalg.norm(d) * rng.uniform(150, 400)
+    seg, loc = [], []
+    counts = np.zeros(S, dtype=int)
+    for s in range(S):
+        kids = np.flatnonzero(parent == s)
+        axis = origin[rng.choice(kids)] - origin[s] if kids.size else rng.normal(0, 150, 3)
+        counts[s] = n_markers(s, kids.size == 0, counts[parent[s]] if s else 0)
+        for _ in range(counts[s]):
+            off = rng.normal(size=3)
+            off -= off @ axis / (axis @ axis) * axis
+            off *= rng.uniform(30, 60) / np.linalg.norm(off)
+            seg.append(s)
+            loc.append(rng.uniform(0.2, 0.8) * axis + off)
+    return parent, origin, np.array(seg), np.array(loc)
+
+
+def make_motion(rng: np.random.Generator, F: int, S: int, amp: float = 0.7) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth global rotations (F, S, 3, 3) from smoothly varying rotation vectors, and a root path."""
+    t = np.linspace(0, 1, F)[:, None, None]
+    freq = rng.uniform(0.3, 1.5, size=(1, S, 3))
+    phase = rng.uniform(0, 2 * np.pi, size=(1, S, 3))
+    rv = rng.normal(0, amp, size=(1, S, 3)) + amp * np.sin(2 * np.pi * freq * t + phase)
+    R = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(F, S, 3, 3)
+    tt = t[:, 0, 0]
+    root = np.stack([400 * np.sin(2 * np.pi * 0.7 * tt), 300 * np.cos(2 * np.pi * tt), 1000 + 200 * tt], -1)
+    return R, root
+
+
+def forward(parent, origin, seg, loc, R, root) -> tuple[np.ndarray, np.ndarray]:
+    """Segment origins (F, S, 3) and markers (F, M, 3) of a pose sequence."""
+    F, S = R.shape[:2]
+    P = np.zeros((F, S, 3))
+    order = [int(np.flatnonzero(parent < 0)[0])]
+    for s in order:
+        order.extend(np.flatnonzero(parent == s).tolist())
+    P[:, order[0]] = root
+    for s in order[1:]:
+        P[:, s] = P[:, parent[s]] + R[:, parent[s]] @ (origin[s] - origin[parent[s]])
+    x = P[:, seg] + np.einsum("fmij,mj->fmi", R[:, seg], loc)
+    return P, x
+
+
+def angle(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    c = (np.einsum("...ij,...ij->...", Ra, Rb) - 1) / 2
+    return np.arccos(np.clip(c, -1, 1))
+
+
+def perturb(rng: np.random.Generator, R: np.ndarray, deg_lo: float, deg_hi: float) -> np.ndarray:
+    axis = rng.normal(size=R.shape[:-2] + (3,))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    ang = np.radians(rng.uniform(deg_lo, deg_hi, size=R.shape[:-2]))
+    return Rotation.from_rotvec((axis * ang[..., None]).reshape(-1, 3)).as_matrix().reshape(R.shape) @ R
+
+
+# --------------------------------------------------------------------------- the linear algebra
+
+
+def test_structured_step_matches_dense_normal_equations():
+    rng = np.random.default_rng(0)
+    S, F = 9, 15
+    parent, origin, seg, loc = make_tree(rng, S, chain=False, n_markers=lambda s, leaf, pc: int(rng.integers(1, 5)))
+    R, root = make_motion(rng, F, S)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    tree = ik._Tree(parent)
+    inv = np.argsort(tree.perm)
+    model = ik._Model(tree, origin[tree.perm], inv[seg], loc)
+    Rs = np.ascontiguousarray(perturb(rng, R[:, tree.perm], 5, 30).transpose(1, 0, 2, 3))
+    p = root + rng.normal(0, 20, (F, 3))
+    y = model.pack(x + rng.normal(0, 5, x.shape))
+    w = model.pack(rng.uniform(0.2, 2.0, x.shape[:2]) * (rng.random(x.shape[:2]) > 0.2))
+    e = rng.normal(0, 0.1, (S, F, 3))
+    st = model.stats(y, w)
+    G, P, c = model.cost(p, Rs, st)
+    r = model.markers(p, Rs) - y
+    np.testing.assert_allclose(c, np.einsum("sfk,sfik->f", w, r * r), rtol=1e-9)
+    H, g = ik._dense_system(model, p, Rs, y, w, e, 7.0)
+    want = -np.linalg.solve(H, g[..., None])[..., 0]
+    dp, dr = model.step(Rs, G, P, st, e, 7.0, np.zeros(F), 0.0)
+    got = np.concatenate([dp[:, None], dr.transpose(1, 0, 2)], 1).reshape(F, -1)
+    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+
+
+def test_rotation_helpers():
+    rng = np.random.default_rng(1)
+    rv = rng.normal(size=(500, 3))
+    rv *= (rng.uniform(0, np.pi - 1e-6, 500) / np.linalg.norm(rv, axis=1))[:, None]
+    rv[:5] *= 1e-9  # tiny angles
+    rv[5:10] *= (np.pi - 1e-9) / np.linalg.norm(rv[5:10], axis=1)[:, None]  # almost pi
+    R = ik._exp(rv)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(rv).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(ik._log(R), rv, atol=1e-7)
+    np.testing.assert_allclose(ik._log(R[10:]), rv[10:], atol=1e-10)
+    np.testing.assert_allclose(ik._quat_to_mat(ik._mat_to_quat(R)), R, atol=1e-12)
+    A = rng.normal(size=(50, 3, 3))
+    np.testing.assert_allclose(ik._inv3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-9)
+
+
+def test_slerp_fill_matches_scipy_and_holds_ends():
+    rng = np.random.default_rng(2)
+    F = 40
+    key = np.array([3, 10, 11, 30])
+    Rk = Rotation.random(len(key), random_state=rng)
+    R = np.full((F, 2, 3, 3), np.nan)
+    R[key, 0] = Rk.as_matrix()
+    valid = np.zeros((F, 2), bool)
+    valid[key, 0] = True
+    out = ik._slerp_fill(R, valid)
+    inside = np.arange(3, 31)
+    np.testing.assert_allclose(out[inside, 0], Slerp(key, Rk)(inside).as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(out[:3, 0], np.broadcast_to(Rk[0].as_matrix(), (3, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(out[31:, 0], np.broadcast_to(Rk[-1].as_matrix(), (9, 3, 3)), atol=1e-12)
+    assert np.isnan(out[:, 1]).all()  # never valid
+
+
+# --------------------------------------------------------------------------- noise-free recovery
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_noise_free_recovery(seed):
+    rng = np.random.default_rng(100 + seed)
+    S = int(rng.integers(3, 16))
+    chain = seed % 2 == 0
+
+    def n_markers(s, leaf, parent_count):
+        # the root needs 3 markers and leaves 2 to fix their twist; a segment with
+        # fewer than 3 markers hangs between well-marked ones
+        if s == 0:
+            return int(rng.integers(3, 5))
+        n = int(rng.integers(2 if leaf else 1, 5))
+        return 3 if n < 3 and parent_count < 3 else n
+
+    parent, origin, seg, loc = make_tree(rng, S, chain, n_markers)
+    F = 60
+    R, root = make_motion(rng, F, S)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    for init in (None, perturb(rng, R, 10, 20)):
+        res = solve_ik(parent, origin, seg, loc, x, init_rot=init, iterations=30)
+        np.testing.assert_allclose(res.rot, R, atol=1e-6)
+        np.testing.assert_allclose(res.root_pos, root, atol=1e-6)
+        assert np.nanmax(res.residual) < 1e-6
+        assert res.converged.all()
+
+
+def test_one_and_two_marker_segments_between_well_marked_ones():
+    rng = np.random.default_rng(7)
+    parent = np.array([-1, 0, 1, 2, 3, 4])
+    counts = [4, 1, 4, 2, 3, 1]
+    _, origin, _, _ = make_tree(rng, 6, chain=True, n_markers=lambda s, leaf, pc: 0)
+    seg = np.repeat(np.arange(6), counts)
+    _, _, _, loc = make_tree(np.random.default_rng(7), 6, chain=True, n_markers=lambda s, leaf, pc: counts[s])
+    # regenerate markers on the same origins
+    loc = np.zeros((len(seg), 3))
+    for s in range(6):
+        axis = origin[s + 1] - origin[s] if s < 5 else np.array([0.0, 0, 120])
+        for m in np.flatnonzero(seg == s):
+            off = rng.normal(size=3)
+            off -= off @ axis / (axis @ axis) * axis
+            loc[m] = rng.uniform(0.2, 0.8) * axis + off / np.linalg.norm(off) * 40
+    F = 80
+    R, root = make_motion(rng, F, 6)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    res = solve_ik(parent, origin, seg, loc, x, init_rot=perturb(rng, R, 10, 20), iterations=30)
+    # segments 0-4 are determined (the 1-marker segment 1 by its two joints and its marker)
+    np.testing.assert_allclose(res.rot[:, :5], R[:, :5], atol=1e-6)
+    np.testing.assert_allclose(res.root_pos, root, atol=1e-6)
+    # the 1-marker leaf: its marker fits, its twist about the marker direction is the prior's
+    assert np.nanmax(res.residual) < 1e-6
+    assert np.isfinite(res.rot).all()
+    # from the data-driven start as well
+    res2 = solve_ik(parent, origin, seg, loc, x, iterations=30)
+    np.testing.assert_allclose(res2.rot[:, :5], R[:, :5], atol=1e-6)
+    assert np.nanmax(res2.residual) < 1e-6
+
+
+def test_parents_in_any_order():
+    rng = np.random.default_rng(8)
+    S = 7
+    parent, origin, seg, loc = make_tree(rng, S, chain=False, n_markers=lambda s, leaf, pc: 3)
+    F = 30
+    R, root = make_motion(rng, F, S)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    # relabel the segments so that children come before parents
+    new = rng.permutation(S)  # old -> new
+    parent2 = np.full(S, -1)
+    parent2[new] = np.where(parent >= 0, new[np.maximum(parent, 0)], -1)
+    origin2 = np.empty_like(origin)
+    origin2[new] = origin
+    res = solve_ik(parent2, origin2, new[seg], loc, x)
+    np.testing.assert_allclose(res.rot[:, new], R, atol=1e-6)
+    np.testing.assert_allclose(res.root_pos, root, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- noise and gaps
+
+
+def humanoid(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """15 segments, 48 markers: pelvis, legs, torso, head, arms."""
+    parent = np.array([-1, 0, 1, 2, 0, 4, 5, 0, 7, 7, 9, 10, 7, 12, 13])
+    origin = np.array(
+        [[0, 0, 1000], [100, 0, 950], [100, 0, 520], [100, 30, 80], [-100, 0, 950], [-100, 0, 520],
+         [-100, 30, 80], [0, 0, 1100], [0, 0, 1500], [180, 0, 1450], [450, 0, 1450], [700, 0, 1450],
+         [-180, 0, 1450], [-450, 0, 1450], [-700, 0, 1450]],
+        dtype=float,
+    )  # fmt: skip
+    counts = [4, 3, 3, 3, 3, 3, 3, 4, 4, 3, 3, 3, 3, 3, 3]
+    seg = np.repeat(np.arange(15), counts)
+    loc = np.zeros((len(seg), 3))
+    for s in range(15):
+        kids = np.flatnonzero(parent == s)
+        axis = origin[kids].mean(0) - origin[s] if kids.size else np.array([0.0, 120, -40])
+        if np.linalg.norm(axis) < 1:  # the pelvis: children all around
+            axis = np.array([0.0, 0, 100])
+        for m in np.flatnonzero(seg == s):
+            off = rng.normal(size=3)
+            off -= off @ axis / (axis @ axis) * axis
+            loc[m] = rng.uniform(0.1, 0.9) * axis + off / np.linalg.norm(off) * rng.uniform(40, 80)
+    return parent, origin, seg, loc
+
+
+def joint_error(res, parent, origin, seg, loc, P_true) -> np.ndarray:
+    P, _ = forward(parent, origin, seg, loc, res.rot, res.root_pos)
+    return np.linalg.norm(P - P_true, axis=-1)
+
+
+def test_one_mm_noise_gives_joints_within_a_few_mm():
+    rng = np.random.default_rng(9)
+    parent, origin, seg, loc = humanoid(rng)
+    F = 300
+    R, root = make_motion(rng, F, 15, amp=0.5)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    res = solve_ik(parent, origin, seg, loc, x + rng.normal(0, 1.0, x.shape))
+    err = joint_error(res, parent, origin, seg, loc, P)
+    assert np.sqrt(np.mean(err**2)) < 1.5
+    assert err.max() < 6.0
+    # residuals are about the noise (3 coordinates, a few dof fitted per marker)
+    assert 0.8 < np.sqrt(np.nanmean(res.residual**2)) < 1.7
+    assert res.converged.mean() > 0.95
+
+
+def test_gaps_are_filled_smoothly_by_the_skeleton():
+    rng = np.random.default_rng(10)
+    parent, origin, seg, loc = humanoid(rng)
+    F = 240
+    R, root = make_motion(rng, F, 15, amp=0.5)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    obs = x.copy()
+    obs[rng.random(obs.shape[:2]) < 0.3] = np.nan
+    gone = {2: (40, 60), 11: (100, 120), 7: (150, 170), 3: (200, 220)}  # shank, hand, torso, foot
+    for s, (a, b) in gone.items():
+        obs[a:b, seg == s] = np.nan
+    res = solve_ik(parent, origin, seg, loc, obs, iterations=20)
+    assert np.isfinite(res.rot).all() and np.isfinite(res.root_pos).all()
+    err = joint_error(res, parent, origin, seg, loc, P)
+    assert np.median(err) < 1e-6  # noise-free: where the data determine the pose, it is exact
+    assert err.max() < 40.0
+    # markers of the missing segments are predicted close to where they were
+    xm = forward(parent, origin, seg, loc, res.rot, res.root_pos)[1]
+    for s, (a, b) in gone.items():
+        d = np.linalg.norm(xm[a:b, seg == s] - x[a:b, seg == s], axis=-1)
+        assert d.max() < 60.0, (s, d.max())
+    # smooth: no frame-to-frame jump much above the true motion's
+    step = np.degrees(angle(res.rot[1:], res.rot[:-1]))
+    true_step = np.degrees(angle(R[1:], R[:-1]))
+    assert step.max() < 2 * true_step.max() + 1.0
+    # residual is NaN exactly where a marker is unseen
+    assert np.array_equal(np.isnan(res.residual), np.isnan(obs).any(-1))
+
+
+def test_noise_and_gaps_together():
+    rng = np.random.default_rng(11)
+    parent, origin, seg, loc = humanoid(rng)
+    F = 200
+    R, root = make_motion(rng, F, 15, amp=0.5)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    obs = x + rng.normal(0, 1.0, x.shape)
+    obs[rng.random(obs.shape[:2]) < 0.3] = np.nan
+    obs[50:70, seg == 10] = np.nan  # a forearm
+    res = solve_ik(parent, origin, seg, loc, obs)
+    err = joint_error(res, parent, origin, seg, loc, P)
+    assert np.isfinite(err).all()
+    assert np.sqrt(np.mean(err**2)) < 3.0
+    assert err.max() < 30.0
+
+
+def test_frames_without_any_marker_are_interpolated():
+    rng = np.random.default_rng(12)
+    parent, origin, seg, loc = make_tree(rng, 5, chain=False, n_markers=lambda s, leaf, pc: 3)
+    F = 50
+    R, root = make_motion(rng, F, 5, amp=0.3)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    obs = x.copy()
+    obs[:5] = np.nan  # at the start
+    obs[20:25] = np.nan  # in the middle
+    obs[-3:] = np.nan  # at the end
+    res = solve_ik(parent, origin, seg, loc, obs)
+    assert np.isfinite(res.rot).all() and np.isfinite(res.root_pos).all()
+    np.testing.assert_allclose(res.root_pos[:5], np.broadcast_to(root[5], (5, 3)), atol=1e-6)
+    np.testing.assert_allclose(res.root_pos[-3:], np.broadcast_to(root[-4], (3, 3)), atol=1e-6)
+    lin = root[19] + (root[25] - root[19]) * (np.arange(20, 25) - 19)[:, None] / 6
+    np.testing.assert_allclose(res.root_pos[20:25], lin, atol=1e-6)
+    np.testing.assert_allclose(res.rot[6:19], R[6:19], atol=1e-6)
+    assert np.isnan(res.residual[20:25]).all()
+
+
+def test_nothing_seen_raises():
+    parent, origin = np.array([-1, 0]), np.array([[0.0, 0, 0], [0, 0, 100]])
+    seg, loc = np.array([0, 0, 1]), np.array([[10.0, 0, 0], [0, 10, 0], [0, 10, 50]])
+    with pytest.raises(ValueError, match="nothing to solve"):
+        solve_ik(parent, origin, seg, loc, np.full((4, 3, 3), np.nan))
+    obs = np.zeros((4, 3, 3))
+    with pytest.raises(ValueError, match="nothing to solve"):  # markers on no segment only
+        solve_ik(parent, origin, np.array([-1, -1, -1]), loc, obs)
+
+
+def test_unassigned_markers_are_ignored_and_unreported():
+    rng = np.random.default_rng(13)
+    parent, origin, seg, loc = make_tree(rng, 4, chain=True, n_markers=lambda s, leaf, pc: 3)
+    F = 20
+    R, root = make_motion(rng, F, 4)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    junk = rng.normal(0, 1e4, (F, 2, 3))
+    res = solve_ik(
+        parent, origin, np.concatenate([seg, [-1, -1]]), np.concatenate([loc, np.zeros((2, 3))]),
+        np.concatenate([x, junk], axis=1),
+    )  # fmt: skip
+    np.testing.assert_allclose(res.rot, R, atol=1e-6)
+    assert res.residual.shape == (F, len(seg) + 2)
+    assert np.isnan(res.residual[:, -2:]).all()
+
+
+def test_weights_downweight_an_outlier_marker():
+    rng = np.random.default_rng(14)
+    parent, origin, seg, loc = make_tree(rng, 4, chain=True, n_markers=lambda s, leaf, pc: 4)
+    F = 20
+    R, root = make_motion(rng, F, 4)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    obs = x.copy()
+    obs[:, 5] += 200.0
+    w = np.ones(len(seg))
+    w[5] = 0.0
+    res = solve_ik(parent, origin, seg, loc, obs, weights=w)
+    np.testing.assert_allclose(res.rot, R, atol=1e-6)
+    np.testing.assert_allclose(res.residual[:, 5], 200.0, atol=1e-6)
+
+
+def test_deterministic():
+    rng = np.random.default_rng(15)
+    parent, origin, seg, loc = humanoid(rng)
+    R, root = make_motion(rng, 50, 15)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    x = x + rng.normal(0, 1, x.shape)
+    x[rng.random(x.shape[:2]) < 0.3] = np.nan
+    a = solve_ik(parent, origin, seg, loc, x)
+    b = solve_ik(parent, origin, seg, loc, x)
+    assert np.array_equal(a.rot, b.rot) and np.array_equal(a.root_pos, b.root_pos)
+    assert np.array_equal(a.residual, b.residual, equal_nan=True)
+
+
+@pytest.mark.parametrize(
+    "parent, message",
+    [
+        (np.array([-1, 0, -1]), "exactly one root"),
+        (np.array([-1, 2, 1]), "not describe a tree"),
+        (np.array([-1, 0, 5]), "parent indices"),
+    ],
+)
+def test_bad_trees_are_rejected(parent, message):
+    origin = np.zeros((3, 3))
+    with pytest.raises(ValueError, match=message):
+        solve_ik(parent, origin, np.array([0]), np.zeros((1, 3)), np.zeros((2, 1, 3)))
+
+
+def test_bad_shapes_are_rejected():
+    parent, origin = np.array([-1, 0]), np.array([[0.0, 0, 0], [0, 0, 100]])
+    seg, loc = np.array([0, 1]), np.array([[10.0, 0, 0], [0, 10, 50]])
+    with pytest.raises(ValueError, match="observed"):
+        solve_ik(parent, origin, seg, loc, np.zeros((5, 3, 3)))
+    with pytest.raises(ValueError, match="init_rot"):
+        solve_ik(parent, origin, seg, loc, np.zeros((5, 2, 3)), init_rot=np.zeros((5, 3, 3, 3)))
+    with pytest.raises(ValueError, match="marker_segment"):
+        solve_ik(parent, origin, np.array([0, 2]), loc, np.zeros((5, 2, 3)))
