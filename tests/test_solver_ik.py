@@ -362,7 +362,7 @@ def test_weights_downweight_an_outlier_marker():
     R, root = make_motion(rng, F, 4)
     _, x = forward(parent, origin, seg, loc, R, root)
     obs = x.copy()
-    obs[:, 5] += 200.0
+    obs[:, 5, 0] += 200.0
     w = np.ones(len(seg))
     w[5] = 0.0
     res = solve_ik(parent, origin, seg, loc, obs, weights=w)

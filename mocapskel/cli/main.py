@@ -98,8 +98,15 @@ def cli() -> None:
     """
 
 
+#: Modules under mocapskel.cli whose commands register themselves on import.
+COMMAND_MODULES = ("fit", "stages", "inspect", "synth", "batch", "report", "compare")
+
+
 def _register() -> None:
-    from . import fit, inspect, stages, synth  # noqa: F401  (commands register themselves)
+    import importlib
+
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"{__package__}.{name}")
 
 
 def main() -> None:

@@ -864,7 +864,7 @@ def solve_ik(
             p[idx], R[:, idx], G[:, idx], P[:, idx], e[:, idx], cost[idx] = (
                 p_new[ok], R_new[:, ok], G2[:, ok], P2[:, ok], e2[:, ok], c2[ok]
             )
-        lam[act] = np.where(ok, np.maximum(lam[act] * 0.3, 1e-12), lam[act] * 10)
+        lam[act] = np.where(ok, np.maximum(lam[act] * 0.1, 1e-9), lam[act] * 10)
         converged[act] = step <= tol
 
     r = model.markers(p, R) - y
