@@ -28,10 +28,10 @@ test: venv
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: venv
-	$(BIN)/python bench/run_all.py
+	$(BIN)/python -m bench.run_all
 
 sample-data: venv
-	$(BIN)/python bench/make_sample_data.py
+	$(BIN)/python -m bench.make_sample_data
 
 clean-out:
 	rm -rf out

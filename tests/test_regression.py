@@ -51,7 +51,7 @@ def test_noise_free_chain_sample_joints_at_rounding_level():
     sc = evaluate.score_joints(res.artifact, truth)
     assert sc.segments_ok and sc.topology_ok
     # the TRC stores 6 decimals (mm): the joints are exact to that rounding
-    assert sc.joint_rms_mm <= 1e-6 * 300.0 * 10
+    assert sc.joint_rms_mm <= 1e-6 * 300.0
 
 
 def _bvhio_positions(path, frames):

@@ -428,17 +428,22 @@ class _Model:
         Cw = (w @ self.lout).reshape(S, F, 3, 3)
         return {"W": W, "lbar": lbar, "ybar": ybar, "Cc": Cc, "Cw": Cw, "c0": c0}
 
-    def cost(self, p: np.ndarray, R: np.ndarray, st: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def cost(
+        self, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bones G, origins P and the data cost sum_m w |x_m - y_m|^2 (F,).
 
-        With d = P + R lbar - ybar: cost = sum_s W |d|^2 + c0 - 2 <R, Cc>.
+        Evaluated marker by marker (not from the sums of :meth:`stats`, whose
+        rounding would blur the small cost changes near convergence).
         """
-        G, P = self.fk(p, R)
         S, F = R.shape[:2]
-        d = P + _mv(R, st["lbar"]) - st["ybar"]
-        RC = np.einsum("sfk,sfk->sf", R.reshape(S, F, 9), st["Cc"].reshape(S, F, 9))
-        c = st["W"] * _dot(d, d) + st["c0"] - 2 * RC
-        return G, P, c.sum(0)
+        G, P = self.fk(p, R)
+        r = (R.reshape(S, F * 3, 3) @ self.lpT).reshape(S, F, 3, self.K)
+        r += P[..., None]
+        r -= y
+        r *= r
+        c = np.einsum("sfk,sfk->f", w, r.sum(2))
+        return G, P, c
 
     def step(
         self,
@@ -450,8 +455,8 @@ class _Model:
         pw: float,
         lam: np.ndarray,
         floor: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """One damped Gauss-Newton step: (dp (F, 3), drot (S, F, 3)).
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One damped Gauss-Newton step: (dp (F, 3), drot (S, F, 3), predicted cost decrease (F,)).
 
         Solves ``(J^T W J + pw I + damping) d = -(J^T W r + pw e)`` exactly in
         O(S) 3x3 operations per frame. The unknowns are the root position and
@@ -479,6 +484,7 @@ class _Model:
         gd[..., 0] += Cr[..., 1, 2] - Cr[..., 2, 1]
         gd[..., 1] += Cr[..., 2, 0] - Cr[..., 0, 2]
         gd[..., 2] += Cr[..., 0, 1] - Cr[..., 1, 0]
+        gP0, gd0 = gP.copy(), gd.copy()  # own data terms, for the predicted decrease
         gd += pw * e
         N = R @ st["Cw"] @ Rt  # sum w L L^T
         HPP = W[..., None, None] * I3
@@ -530,7 +536,18 @@ class _Model:
                 pr = t.par[sl]
                 xP[sl] = xP[pr] - _cross(G[sl], xd[pr])
             xd[sl] = _mv(Dinv[sl], gd[sl] - _mv(HdP[sl], xP[sl]))
-        return -xP0, -xd
+        # decrease of the linearised cost: every segment's own markers and prior
+        u, dl = -xP, -xd
+        Nd = _mv(N, dl)
+        lin = (
+            2 * (_dot(gP0, u) + _dot(gd0, dl))
+            + W * _dot(u, u)
+            + 2 * _dot(u, _cross(dl, A))
+            + (N[..., 0, 0] + N[..., 1, 1] + N[..., 2, 2]) * _dot(dl, dl)
+            - _dot(dl, Nd)
+            + pw * (2 * _dot(e, dl) + _dot(dl, dl))
+        )
+        return -xP0, -xd, -lin.sum(0)
 
 
 def _dense_system(
@@ -828,14 +845,13 @@ def solve_ik(
     pts = np.concatenate([model.origin, model.origin[seg] + model.local])
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
     floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
-    # rounding level of the cost (it is computed from centred sums)
-    cost_eps = 1e-11 * (st["c0"].sum(0) + 1.0)
 
     R_prior_T = np.ascontiguousarray(np.swapaxes(R_prior, -1, -2))
-    G, P, cost = model.cost(p, R, st)
+    G, P, cost = model.cost(p, R, y, w)
     e = _log(R @ R_prior_T)  # (S, F, 3)
     cost += pw * _dot(e, e).sum(0)
     lam = np.full(F, float(damping))
+    nu = np.full(F, 2.0)
     converged = np.zeros(F, dtype=bool)
     n_iter = 0
     for _ in range(int(iterations)):
@@ -846,16 +862,18 @@ def solve_ik(
             act = np.flatnonzero(~converged)
             pa, Ra, Ga, Pa, ea, RpT = p[act], R[:, act], G[:, act], P[:, act], e[:, act], R_prior_T[:, act]
             sta = {k: v[:, act] for k, v in st.items()}
+            ya, wa = y[:, act], w[:, act]
         else:
             act = slice(None)
-            pa, Ra, Ga, Pa, ea, RpT, sta = p, R, G, P, e, R_prior_T, st
-        dp, dr = model.step(Ra, Ga, Pa, sta, ea, pw, lam[act], floor)
+            pa, Ra, Ga, Pa, ea, RpT, sta, ya, wa = p, R, G, P, e, R_prior_T, st, y, w
+        dp, dr, pred = model.step(Ra, Ga, Pa, sta, ea, pw, lam[act], floor)
         p_new = pa + dp
         R_new = _exp(dr) @ Ra
-        G2, P2, c2 = model.cost(p_new, R_new, sta)
+        G2, P2, c2 = model.cost(p_new, R_new, ya, wa)
         e2 = _log(R_new @ RpT)
         c2 += pw * _dot(e2, e2).sum(0)
-        ok = c2 <= cost[act] + cost_eps[act]
+        eps = 1e-12 * cost[act] + 1e-18  # the rounding level of the cost
+        ok = c2 <= cost[act] + eps
         step = np.sqrt(np.maximum(_dot(dp, dp), scale**2 * _dot(dr, dr).max(0)))
         if ok.all() and isinstance(act, slice):
             p, R, G, P, e, cost = p_new, R_new, G2, P2, e2, c2
@@ -864,8 +882,14 @@ def solve_ik(
             p[idx], R[:, idx], G[:, idx], P[:, idx], e[:, idx], cost[idx] = (
                 p_new[ok], R_new[:, ok], G2[:, ok], P2[:, ok], e2[:, ok], c2[ok]
             )
-        lam[act] = np.where(ok, np.maximum(lam[act] * 0.1, 1e-9), lam[act] * 10)
-        converged[act] = step <= tol
+        # Nielsen's damping update from the gain ratio (actual / predicted decrease)
+        rho = (cost[act] - c2) / np.maximum(pred, 1e-300)
+        rho = np.where(pred <= eps, 1.0, rho)  # at the rounding level: trust the model
+        la, na = lam[act], nu[act]
+        lam[act] = np.where(ok, np.maximum(la * np.maximum(1 / 3, 1 - (2 * np.minimum(rho, 1) - 1) ** 3), 1e-12), la * na)
+        nu[act] = np.where(ok, 2.0, na * 2)
+        # converged: the step is below tol, or the linear model can no longer lower the cost
+        converged[act] = (step <= tol) | (ok & (pred <= eps) & (la <= 1.0))
 
     r = model.markers(p, R) - y
     res = np.full((F, M), np.nan)

@@ -28,7 +28,7 @@ VERSION = 1
 @dataclass(frozen=True)
 class Params:
     n_segments: int | None = None
-    """Number of segments; None: from the eigen-gap."""
+    """Number of segments; None: from the eigen-gap, split further until every group is rigid."""
     interval_s: float = 0.5
     """Sampling interval (Kirk: half a second)."""
     jitter_s: float = 0.1
@@ -190,7 +190,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         )
     sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
     if k is None:
-        k = max(2, rigid_count(pooled, rigid_mm))
+        k = max(k_auto, rigid_count(pooled, rigid_mm))  # the eigen-gap's count, split further if not rigid
     if k > iu.size:
         raise DataError(f"asked for {k} segments but only {iu.size} usable markers", markers.source or None)
 

@@ -1,0 +1,33 @@
+"""Run every benchmark and rewrite BENCHMARKS.md (`make bench`)."""
+from __future__ import annotations
+
+import datetime
+import subprocess
+import sys
+from pathlib import Path
+
+from bench.common import REPO, machine
+
+BENCHES = [
+    ("Accuracy and time of `fit` on generated takes", "bench.accuracy"),
+]
+
+
+def main() -> None:
+    parts = [
+        "# Benchmarks\n",
+        f"Machine: {machine()}.  ",
+        f"Date: {datetime.date.today().isoformat()}.  ",
+        "Command: `make bench` (each section below is `python -m <module>`; every fit runs in a fresh process).\n",
+    ]
+    for title, module in BENCHES:
+        print(f"running {module} …", file=sys.stderr)
+        out = subprocess.run([sys.executable, "-m", module], cwd=REPO, capture_output=True, text=True)
+        parts.append(f"## {title}\n\n`python -m {module}`\n")
+        parts.append(out.stdout if out.returncode == 0 else f"FAILED:\n```\n{out.stderr[-3000:]}\n```\n")
+    (REPO / "BENCHMARKS.md").write_text("\n".join(parts) + "\n")
+    print("wrote BENCHMARKS.md", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
