@@ -81,12 +81,10 @@ def score_skeleton(skel: Skeleton, truth: Truth) -> Score:
     sc = score_joints(skel.joints, truth)
     smap = segment_map(skel.marker_segment, truth)
     for s, t in smap.items():
-        n_kids = int((skel.parent == s).sum())
-        true_kids = int((truth.parent == t).sum())
-        if not ((n_kids == 1 and true_kids == 1 and skel.parent[s] >= 0) or (skel.parent[s] < 0 and n_kids == 2 and truth.parent[t] < 0)):
-            continue  # a bone length is defined for a segment between exactly two joints
+        n_joints = int((skel.parent == s).sum()) + int(skel.parent[s] >= 0)
         true_len = _true_segment_length(truth, t)
-        if np.isfinite(true_len) and np.isfinite(skel.bone_length[s]):
+        # a bone length is defined for a segment between exactly two joints
+        if n_joints == 2 and np.isfinite(true_len) and np.isfinite(skel.bone_length[s]):
             sc.bone_err[truth.segment_names[t]] = float(skel.bone_length[s] / true_len - 1.0)
     return sc
 
@@ -137,12 +135,8 @@ def joint_positions(motion: Motion) -> np.ndarray:
 
 
 def _true_segment_length(truth: Truth, t: int) -> float:
-    """Distance between the joints of true segment t when it has exactly one child (else NaN)."""
-    for e, c in enumerate(truth.joint_child):
-        if c == t:
-            return float(truth.bone_length[e])
-    # the root: distance between its two joints if it has two
-    kids = [e for e, c in enumerate(truth.joint_child) if truth.parent[c] == t]
-    if truth.parent[t] < 0 and len(kids) == 2:
-        return float(np.nanmean(np.linalg.norm(truth.joints[:, kids[0]] - truth.joints[:, kids[1]], axis=1)))
-    return float("nan")
+    """Mean distance between the two joints of true segment t (NaN unless it has exactly two)."""
+    js = [e for e, c in enumerate(truth.joint_child) if c == t or truth.parent[c] == t]
+    if len(js) != 2:
+        return float("nan")
+    return float(np.nanmean(np.linalg.norm(truth.joints[:, js[0]] - truth.joints[:, js[1]], axis=1)))

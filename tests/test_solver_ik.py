@@ -97,14 +97,16 @@ def test_structured_step_matches_dense_normal_equations():
     w = model.pack(rng.uniform(0.2, 2.0, x.shape[:2]) * (rng.random(x.shape[:2]) > 0.2))
     e = rng.normal(0, 0.1, (S, F, 3))
     st = model.stats(y, w)
-    G, P, c = model.cost(p, Rs, st)
+    G, P, c = model.cost(p, Rs, y, w)
     r = model.markers(p, Rs) - y
-    np.testing.assert_allclose(c, np.einsum("sfk,sfik->f", w, r * r), rtol=1e-9)
+    np.testing.assert_allclose(c, np.einsum("sfk,sfik->f", w, r * r), rtol=1e-12)
     H, g = ik._dense_system(model, p, Rs, y, w, e, 7.0)
     want = -np.linalg.solve(H, g[..., None])[..., 0]
-    dp, dr = model.step(Rs, G, P, st, e, 7.0, np.zeros(F), 0.0)
+    dp, dr, pred = model.step(Rs, G, P, st, e, 7.0, np.zeros(F), 0.0)
     got = np.concatenate([dp[:, None], dr.transpose(1, 0, 2)], 1).reshape(F, -1)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+    # the predicted decrease is that of the quadratic model
+    np.testing.assert_allclose(pred, -(2 * np.einsum("fi,fi->f", g, got) + np.einsum("fi,fij,fj->f", got, H, got)))
 
 
 def test_rotation_helpers():

@@ -30,6 +30,7 @@ import numpy as np
 from .rigid import kabsch
 
 __all__ = ["IKResult", "solve_ik"]
+_DEBUG = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -467,8 +468,10 @@ class _Model:
         increment is eliminated, leaving a 3x3 quadratic in ``dP_s`` that is
         pushed onto the parent through ``[I, -[G_c]x]``; the root's 3x3 system
         gives ``dp``; back-substitution runs root first. The
-        Levenberg-Marquardt damping adds ``lam * diag`` to each segment's
-        (effective) rotation block and to the root position block.
+        Levenberg-Marquardt damping scales each segment's (effective) 3x3
+        rotation block and the root position block by ``1 + lam``: each
+        direction is damped in proportion to its own curvature, so that weakly
+        determined twists are not frozen by the stiff directions of the block.
         """
         t = self.t
         S, F = R.shape[:2]
@@ -500,8 +503,8 @@ class _Model:
         for lv in range(len(t.levels) - 1, -1, -1):
             sl = t.levels[lv]
             D = Hdd[sl]
+            D *= (1 + lam)[:, None, None]
             for i in range(3):
-                D[..., i, i] *= 1 + lam
                 D[..., i, i] += floor
             Di = _inv3(D)
             Dinv[sl] = Di
@@ -510,9 +513,8 @@ class _Model:
             K = HPP[sl] - Z @ HdP[sl]
             k = gP[sl] - _mv(Z, gd[sl])
             if lv == 0:
-                K0 = K[0]
+                K0 = K[0] * (1 + lam)[:, None, None]
                 for i in range(3):
-                    K0[..., i, i] *= 1 + lam
                     K0[..., i, i] += floor
                 xP0 = _mv(_inv3(K0), k[0])
                 break
@@ -589,6 +591,11 @@ def _dense_system(
 # --------------------------------------------------------------------------- initialisation
 
 
+#: Kabsch fits whose points spread less than this fraction across their main
+#: axis fix the twist about it poorly; the initialisation does not trust them.
+_INIT_SPREAD = 0.05
+
+
 def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Data-driven rotations (F, S, 3, 3) for every segment and frame (all finite).
 
@@ -621,6 +628,7 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
         np.broadcast_to(ref, (F, S) + ref.shape[1:]).reshape(F * S, -1, 3),
         obs.reshape(F * S, -1, 3),
         ww.reshape(F * S, -1),
+        collinear_tol=_INIT_SPREAD,
     )
     Rk = Rk.reshape(F, S, 3, 3)
     tk = tk.reshape(F, S, 3)
@@ -648,7 +656,9 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
             if not todo.any():
                 continue
             rp, op, wp = augmented(s)
-            R2, t2, _ = kabsch(np.broadcast_to(rp, (int(todo.sum()),) + rp.shape), op[todo], wp[todo])
+            R2, t2, _ = kabsch(
+                np.broadcast_to(rp, (int(todo.sum()),) + rp.shape), op[todo], wp[todo], collinear_tol=_INIT_SPREAD
+            )
             ok = np.isfinite(R2[:, 0, 0])
             idx = np.flatnonzero(todo)[ok]
             Rk[idx, s], tk[idx, s] = R2[ok], t2[ok]
@@ -872,9 +882,17 @@ def solve_ik(
         G2, P2, c2 = model.cost(p_new, R_new, ya, wa)
         e2 = _log(R_new @ RpT)
         c2 += pw * _dot(e2, e2).sum(0)
-        eps = 1e-12 * cost[act] + 1e-18  # the rounding level of the cost
-        ok = c2 <= cost[act] + eps
+        c1 = cost[act]
+        eps = 1e-12 * c1 + 1e-18  # the rounding level of the cost
+        ok = c2 <= c1 + eps
         step = np.sqrt(np.maximum(_dot(dp, dp), scale**2 * _dot(dr, dr).max(0)))
+        # Nielsen's damping update from the gain ratio (actual / predicted decrease)
+        rho = np.where(pred <= eps, 1.0, (c1 - c2) / np.maximum(pred, 1e-300))  # rounding level: trust the model
+        la, na = lam[act], nu[act]
+        lam[act] = np.where(ok, np.maximum(la * np.maximum(1 / 3, 1 - (2 * np.minimum(rho, 1) - 1) ** 3), 1e-12), la * na)
+        nu[act] = np.where(ok, 2.0, na * 2)
+        # converged: the step is below tol, or the linear model can no longer lower the cost
+        converged[act] = (step <= tol) | (ok & (pred <= eps))
         if ok.all() and isinstance(act, slice):
             p, R, G, P, e, cost = p_new, R_new, G2, P2, e2, c2
         else:
@@ -882,14 +900,8 @@ def solve_ik(
             p[idx], R[:, idx], G[:, idx], P[:, idx], e[:, idx], cost[idx] = (
                 p_new[ok], R_new[:, ok], G2[:, ok], P2[:, ok], e2[:, ok], c2[ok]
             )
-        # Nielsen's damping update from the gain ratio (actual / predicted decrease)
-        rho = (cost[act] - c2) / np.maximum(pred, 1e-300)
-        rho = np.where(pred <= eps, 1.0, rho)  # at the rounding level: trust the model
-        la, na = lam[act], nu[act]
-        lam[act] = np.where(ok, np.maximum(la * np.maximum(1 / 3, 1 - (2 * np.minimum(rho, 1) - 1) ** 3), 1e-12), la * na)
-        nu[act] = np.where(ok, 2.0, na * 2)
-        # converged: the step is below tol, or the linear model can no longer lower the cost
-        converged[act] = (step <= tol) | (ok & (pred <= eps) & (la <= 1.0))
+        if _DEBUG:
+            print(n_iter, "acc %.3f" % ok.mean(), "rho", np.percentile(rho, [5, 50]).round(3), "lam med %.1e max %.1e" % (np.median(lam), lam.max()), "step med %.1e p90 %.1e" % (np.median(step), np.percentile(step, 90)), "conv", converged.mean())
 
     r = model.markers(p, R) - y
     res = np.full((F, M), np.nan)

@@ -73,7 +73,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             if fit.ok and fit.hinge:
                 hinges[e] = (fit, a, b)
             if fit.ok:
-                centres[:, e] = fit.centre
+                centres[:, e] = centre_from_either_side(fit, groups[a], groups[b])
                 methods[e] = "score-hinge" if fit.hinge else "score"
                 per_joint[e]["why"] = (
                     "both segments have 3+ markers: SCoRE linear least squares"
@@ -132,3 +132,23 @@ def place_on_hinge(fit, A: np.ndarray, centres: np.ndarray, edges: np.ndarray, e
     per_frame = np.where(ok, s, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
     shift = float(np.median(per_frame[ok.any(axis=1)]))
     return fit.centre + shift * u, shift
+
+
+def centre_from_either_side(fit, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Joint centre per frame from a SCoRE fit, using whichever segment is seen.
+
+    ``fit.centre`` needs both segments' poses; where only one is known the
+    centre is still fixed in that one. A, B : (F, Na, 3), (F, Nb, 3) markers
+    of the fit's two segments. Returns (F, 3), NaN where neither is seen.
+    """
+    R1, t1, _ = kabsch(fit.markers1, A)
+    R2, t2, _ = kabsch(fit.markers2, B)
+    p1 = np.einsum("fij,j->fi", R1, fit.c1) + t1
+    p2 = np.einsum("fij,j->fi", R2, fit.c2) + t2
+    ok1 = np.isfinite(p1).all(1)
+    ok2 = np.isfinite(p2).all(1)
+    out = np.where(ok1[:, None], p1, p2)
+    both = ok1 & ok2
+    out[both] = 0.5 * (p1[both] + p2[both])
+    out[~(ok1 | ok2)] = np.nan
+    return out
