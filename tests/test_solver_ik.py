@@ -280,13 +280,16 @@ def test_gaps_are_filled_smoothly_by_the_skeleton():
     res = solve_ik(parent, origin, seg, loc, obs, iterations=20)
     assert np.isfinite(res.rot).all() and np.isfinite(res.root_pos).all()
     err = joint_error(res, parent, origin, seg, loc, P)
-    assert np.median(err) < 1e-6  # noise-free: where the data determine the pose, it is exact
-    assert err.max() < 40.0
+    # noise-free: where the data determine the pose it is all but exact (the prior,
+    # interpolated over the gaps, pulls a little where it is not the data's pose)
+    assert np.median(err) < 1e-4
+    assert np.percentile(err, 90) < 1e-2
+    assert err.max() < 20.0
     # markers of the missing segments are predicted close to where they were
     xm = forward(parent, origin, seg, loc, res.rot, res.root_pos)[1]
     for s, (a, b) in gone.items():
         d = np.linalg.norm(xm[a:b, seg == s] - x[a:b, seg == s], axis=-1)
-        assert d.max() < 60.0, (s, d.max())
+        assert d.max() < 20.0, (s, d.max())
     # smooth: no frame-to-frame jump much above the true motion's
     step = np.degrees(angle(res.rot[1:], res.rot[:-1]))
     true_step = np.degrees(angle(R[1:], R[:-1]))

@@ -30,7 +30,6 @@ import numpy as np
 from .rigid import kabsch
 
 __all__ = ["IKResult", "solve_ik"]
-_DEBUG = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -716,7 +715,7 @@ def solve_ik(
     weights: np.ndarray | None = None,
     iterations: int = 10,
     damping: float = 1e-3,
-    prior_weight: float = 10.0,
+    prior_weight: float = 100.0,
     tol: float = 1e-6,
 ) -> IKResult:
     """Segment rotations and root position that best fit the markers, every frame.
@@ -764,7 +763,7 @@ def solve_ik(
     prior_weight : float, optional
         Weight of the rotation prior in mm^2 per rad^2: the prior pulls like
         one marker ``sqrt(prior_weight)`` mm from the rotation axis (default:
-        about 3 mm). Keep it positive so that segments with too few markers
+        10 mm). Keep it positive so that segments with too few markers
         (or none) in a frame stay determined.
     tol : float, optional
         A frame has converged when its last step moves no point of the
@@ -900,8 +899,6 @@ def solve_ik(
             p[idx], R[:, idx], G[:, idx], P[:, idx], e[:, idx], cost[idx] = (
                 p_new[ok], R_new[:, ok], G2[:, ok], P2[:, ok], e2[:, ok], c2[ok]
             )
-        if _DEBUG:
-            print(n_iter, "acc %.3f" % ok.mean(), "rho", np.percentile(rho, [5, 50]).round(3), "lam med %.1e max %.1e" % (np.median(lam), lam.max()), "step med %.1e p90 %.1e" % (np.median(step), np.percentile(step, 90)), "conv", converged.mean())
 
     r = model.markers(p, R) - y
     res = np.full((F, M), np.nan)

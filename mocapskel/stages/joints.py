@@ -19,6 +19,7 @@ from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import jmv_joint, joint_cost
 from ..solvers.rigid import kabsch
 from ..solvers.score import score_from_markers
+from ..solvers.sphere import mgdk
 
 VERSION = 1
 
@@ -86,6 +87,15 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         centres[:, e], shift = place_on_hinge(fit, groups[a], centres, edges, e)
         if shift is not None:
             per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
+    if params.method == "sphere":
+        for e, (a, b) in enumerate(edges):
+            c, side = sphere_centre(groups[a], groups[b])
+            if side is not None:
+                centres[:, e] = c
+                methods[e] = "sphere"
+                per_joint[e]["why"] = f"UGDK/MGDK sphere fit of the {'child' if side == 0 else 'parent'} markers in the {'parent' if side == 0 else 'child'} frame"
+            else:
+                per_joint[e]["note"] = f"sphere fit not possible (no side with 3+ markers); {methods[e]} used"
     residual = np.full(E, np.nan)
     for e, (a, b) in enumerate(edges):
         both = np.concatenate([groups[a], groups[b]], axis=1)
@@ -152,3 +162,28 @@ def centre_from_either_side(fit, A: np.ndarray, B: np.ndarray) -> np.ndarray:
     out[both] = 0.5 * (p1[both] + p2[both])
     out[~(ok1 | ok2)] = np.nan
     return out
+
+
+def sphere_centre(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, int | None]:
+    """Joint centre by Knight's unbiased multi-radius sphere fit (MGDK with estimated noise).
+
+    The markers of one segment, expressed in the frame of the other (which
+    needs 3+ markers), move on spheres about the joint. The parent side
+    (``A`` as the frame) is tried first. Returns (centre (F, 3), side used:
+    0 = A's frame, 1 = B's frame, None = failed).
+    """
+    for side, (P, C) in enumerate(((A, B), (B, A))):
+        if P.shape[1] < 3 or C.shape[1] < 1:
+            continue
+        full = np.flatnonzero(np.isfinite(P).all(axis=(1, 2)))
+        if not full.size:
+            continue
+        ref = P[full[0]]
+        R, t, _ = kabsch(ref, P)
+        local = np.einsum("fji,fkj->fki", R, C - t[:, None, :])  # R^T (C - t)
+        fit = mgdk(local, sigma=None)
+        if not fit.ok:
+            fit = mgdk(local, sigma=0.0)
+        if fit.ok:
+            return np.einsum("fij,j->fi", R, fit.centre) + t, side
+    return np.full((A.shape[0], 3), np.nan), None
