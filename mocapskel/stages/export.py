@@ -3,7 +3,8 @@
 Axes: with ``up="z"`` BVH axes are the lab's; with ``up="y"`` lab (x, y, z)
 maps to BVH (x, z, -y), so a Y-up importer such as Blender's puts the subject
 back in its lab frame. Units: mm, cm or m. Rest pose (all channels zero) is the
-subject at the skeleton's rest frame.
+subject's shape at the skeleton's rest frame; the root's OFFSET is zero and its
+position channels are absolute, which every BVH reader agrees on.
 """
 from __future__ import annotations
 
@@ -12,15 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..io.bvh import BvhSkeleton
+from ..io.bvh import BvhSkeleton, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
 
-VERSION = 1
+VERSION = 2
 
-UNIT_SCALE = {"mm": 1.0, "cm": 0.1, "m": 0.001}
-AXES = {
-    "z": np.eye(3),
-    "y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-}
+UPS = ("y", "z")
+UNITS = ("cm", "mm", "m")
 
 
 @dataclass(frozen=True)
@@ -44,34 +42,31 @@ class BvhMotion:
 
 
 def run(motion: Motion, params: Params = Params()) -> BvhMotion:
-    if params.up not in AXES:
-        raise ValueError(f"up must be one of {sorted(AXES)}")
-    if params.units not in UNIT_SCALE:
-        raise ValueError(f"units must be one of {sorted(UNIT_SCALE)}")
-    C = AXES[params.up]
-    k = UNIT_SCALE[params.units]
+    if params.up not in UPS:
+        raise ValueError(f"up must be one of {UPS}")
+    if params.units not in UNITS:
+        raise ValueError(f"units must be one of {UNITS}")
     sk = motion.skeleton
-    G = np.einsum("ij,fsjk,lk->fsil", C, motion.rot, C)  # C R C^T
-    local = G.copy()
-    has = sk.parent >= 0
-    local[:, has] = np.einsum("fsji,fsjk->fsik", G[:, sk.parent[has]], G[:, has])
     perm = depth_first(sk.parent)
     inv = np.empty_like(perm)
     inv[perm] = np.arange(perm.size)
     par = np.where(sk.parent[perm] >= 0, inv[np.maximum(sk.parent[perm], 0)], -1)
+    offset = lab_to_bvh(sk.offset[perm], params.up, params.units)
+    offset[par < 0] = 0.0
+    local = global_to_local_rot(par, lab_rot_to_bvh(motion.rot[:, perm], params.up))
     bskel = BvhSkeleton(
         names=tuple(sk.names[i] for i in perm),
         parent=par,
-        offset=(sk.offset[perm] @ C.T) * k,
-        end_site=(sk.end_site[perm] @ C.T) * k,
+        offset=offset,
+        end_site=lab_to_bvh(sk.end_site[perm], params.up, params.units),
         order=params.order,
     )
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
-    return BvhMotion(bskel, (motion.root_pos @ C.T) * k, local[:, perm], 1.0 / rate)
+    return BvhMotion(bskel, lab_to_bvh(motion.root_pos, params.up, params.units), local, 1.0 / rate)
 
 
 def depth_first(parent: np.ndarray) -> np.ndarray:
-    """Segment indices in depth-first order from the root (parents before children)."""
+    """Segment indices depth first from the root (any numbering; parents come before children)."""
     parent = np.asarray(parent)
     order: list[int] = []
     stack = [int(r) for r in np.flatnonzero(parent < 0)[::-1]]
