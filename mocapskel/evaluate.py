@@ -89,12 +89,28 @@ def score_skeleton(skel: Skeleton, truth: Truth) -> Score:
     return sc
 
 
-def score_motion(motion: Motion, truth: Truth) -> Score:
-    """Like score_skeleton, with joint centres taken from the IK solution (the skeleton's joints)."""
+def score_motion(motion: Motion, truth: Truth, truth_labels: tuple[str, ...] | None = None) -> Score:
+    """Like score_skeleton, with joint centres taken from the IK solution (the skeleton's joints).
+
+    ``truth_labels``: the labels of the take the truth belongs to, when the
+    skeleton was fitted on another take (``solve``); segments are then matched
+    to the truth by label.
+    """
     skel = motion.skeleton
-    sc = score_skeleton(skel, truth)
+    if truth_labels is None:
+        sc = score_skeleton(skel, truth)
+        smap = segment_map(skel.marker_segment, truth)
+    else:
+        where = {l: i for i, l in enumerate(truth_labels)}
+        group = np.array([truth.marker_segment[where[l]] if l in where else -1 for l in skel.labels])
+        smap = {}
+        for s in range(len(skel.names)):
+            t = group[skel.marker_segment == s]
+            t = t[t >= 0]
+            if t.size:
+                smap[s] = int(np.bincount(t).argmax())
+        sc = Score(len(set(smap.values())) == len(smap) == len(truth.segment_names), True)
     pos = joint_positions(motion)  # (F, S, 3) segment origins
-    smap = segment_map(skel.marker_segment, truth)
     errs, each = [], {}
     for s, t in smap.items():
         if skel.parent[s] < 0:
@@ -115,23 +131,9 @@ def score_motion(motion: Motion, truth: Truth) -> Score:
 
 def joint_positions(motion: Motion) -> np.ndarray:
     """(F, S, 3) world position of every segment origin (joint) from the IK solution."""
-    sk = motion.skeleton
-    F, S = motion.rot.shape[:2]
-    pos = np.zeros((F, S, 3))
-    done = np.zeros(S, dtype=bool)
-    off = sk.offset
-    while not done.all():
-        for s in range(S):
-            if done[s]:
-                continue
-            p = sk.parent[s]
-            if p < 0:
-                pos[:, s] = motion.root_pos
-                done[s] = True
-            elif done[p]:
-                pos[:, s] = pos[:, p] + np.einsum("fij,j->fi", motion.rot[:, p], off[s])
-                done[s] = True
-    return pos
+    from .kinematics import segment_origins
+
+    return segment_origins(motion)
 
 
 def _true_segment_length(truth: Truth, t: int) -> float:

@@ -197,3 +197,76 @@ def fit(
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
     return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
+
+
+def solve(
+    source: str | os.PathLike | Any,
+    skeleton: Any,
+    params: dict[str, Any] | None = None,
+    *,
+    read: ReadOptions = ReadOptions(),
+) -> FitResult:
+    """Solve a take by IK alone with a subject skeleton fitted before (calibrate once, solve many).
+
+    Markers are matched by label: the skeleton's markers missing from the take
+    are tolerated (gaps), labels the skeleton does not know are ignored with a
+    warning, and a take with too few known labels is refused (DataError).
+    """
+    import numpy as np
+
+    from . import __version__
+    from .errors import DataError
+    from .stages import clean, export, ik
+
+    params = dict(params or {})
+    t0 = time.perf_counter()
+    seconds: dict[str, float] = {}
+    obj = read_input(source, read)[0] if isinstance(source, (str, os.PathLike)) else source
+    mk = artifacts.markers_of(obj)
+    seconds["read"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    if mk.stage == "read":
+        mk = clean.run(mk, params.get("clean") or clean.Params())
+    seconds["clean"] = time.perf_counter() - t
+    where = {l: i for i, l in enumerate(mk.labels)}
+    known = [l for l in skeleton.labels if l in where]
+    unknown = [l for l in mk.labels if l not in set(skeleton.labels)]
+    missing = [l for l in skeleton.labels if l not in where]
+    need = max(3, int(np.ceil(0.3 * len(skeleton.labels))))
+    if len(known) < need:
+        raise DataError(
+            f"only {len(known)} of the skeleton's {len(skeleton.labels)} marker labels are in this take (at least {need} needed)"
+            " — is it the same subject and marker set?",
+            mk.source or None,
+        )
+    pts = np.full((mk.n_frames, len(skeleton.labels), 3), np.nan)
+    for j, l in enumerate(skeleton.labels):
+        if l in where:
+            pts[:, j] = mk.points[:, where[l]]
+    t = time.perf_counter()
+    motion = ik.solve(skeleton, pts, None, iterations=(params.get("ik") or ik.Params()).iterations, rate=mk.rate, source=mk.source)
+    seconds["ik"] = time.perf_counter() - t
+    t = time.perf_counter()
+    bvh = export.run(motion, params.get("export") or export.Params())
+    seconds["export"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t0
+    warnings = []
+    if unknown:
+        warnings.append(f"{len(unknown)} labels not in the skeleton were ignored: {', '.join(unknown[:20])}" + (" …" if len(unknown) > 20 else ""))
+    if missing:
+        warnings.append(f"{len(missing)} skeleton markers are missing from the take: {', '.join(missing[:20])}" + (" …" if len(missing) > 20 else ""))
+    report = {
+        "tool": {"name": "mocapskel", "version": __version__},
+        "input": {"file": mk.source, "frames": mk.n_frames, "markers": mk.n_markers, "rate_hz": mk.rate},
+        "skeleton": {"segments": len(skeleton.names), "markers": len(skeleton.labels), "source": skeleton.info.get("source", "")},
+        "labels": {"matched": len(known), "missing": missing, "ignored": unknown},
+        "clean": mk.info.get("clean", {}),
+        "ik": {
+            "marker_rms_mm": motion.info.get("rms_mm"),
+            "marker_rms_mm_per_segment": motion.info.get("rms_mm_per_segment", {}),
+            "filled_fraction": motion.info.get("filled_fraction"),
+        },
+        "seconds": {k: round(v, 4) for k, v in seconds.items()},
+        "warnings": warnings,
+    }
+    return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings))

@@ -15,6 +15,19 @@ from .options import bvh_options, cache_options, check_output, common, fit_optio
 log = logging.getLogger("mocapskel")
 
 
+def write_markers_out(path, motion, input_path, read) -> None:
+    """The take's markers (as read) plus one virtual marker per joint centre, as C3D or TRC."""
+    from ..io.markers import write_markers
+    from ..kinematics import with_joint_markers
+
+    markers, _ = pipeline.read_input(input_path, read)
+    markers = pipeline.artifacts.markers_of(markers)
+    if markers.n_frames != motion.root_pos.shape[0]:  # pragma: no cover - same take
+        raise ValueError("markers and motion differ in frame count")
+    # keep only the labels the fit used, so that gaps and cleaning are as solved
+    write_markers(path, with_joint_markers(markers, motion))
+
+
 def write_report(path, report: dict) -> None:
     with atomic_open(path, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=2, allow_nan=False)
@@ -27,10 +40,12 @@ def write_report(path, report: dict) -> None:
 @fit_options
 @bvh_options
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write the JSON report here.")
+@click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
+@click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -41,12 +56,22 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
     check_output(output, input, suffixes=(".bvh",))
     if report_path:
         check_output(report_path, input, suffixes=(".json",))
+    if skeleton_out:
+        check_output(skeleton_out, input, suffixes=(".skel",))
+    if markers_out:
+        check_output(markers_out, input, suffixes=(".c3d", ".trc"))
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     b = res.bvh
     write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
     if report_path:
         write_report(report_path, res.report)
+    if skeleton_out:
+        from ..io.skeleton import write_skeleton
+
+        write_skeleton(skeleton_out, res.motion.skeleton, source=res.report["input"]["file"])
+    if markers_out:
+        write_markers_out(markers_out, res.motion, input, make_read(exclude, include))
     ik = res.report["ik"]
     rms = ik.get("marker_rms_mm")
     log.info(

@@ -99,7 +99,7 @@ def cli() -> None:
 
 
 #: Modules under mocapskel.cli whose commands register themselves on import.
-COMMAND_MODULES = ("fit", "stages", "inspect", "synth", "batch", "report", "compare")
+COMMAND_MODULES = ("fit", "stages", "inspect", "synth", "solve", "batch", "report", "compare")
 
 
 def _register() -> None:

@@ -1,0 +1,54 @@
+"""``mocapskel solve``: IK alone, with a subject skeleton fitted before."""
+from __future__ import annotations
+
+import logging
+
+import click
+
+from .. import pipeline
+from ..io.bvh import write_bvh
+from ..io.skeleton import read_skeleton
+from .fit import write_markers_out, write_report
+from .main import cli
+from .options import bvh_options, check_output, common, make_read, read_options
+
+log = logging.getLogger("mocapskel")
+
+
+@cli.command("solve")
+@click.argument("input", type=click.Path(dir_okay=True))
+@click.option("--skeleton", "skeleton_path", required=True, type=click.Path(), help="Subject skeleton (.skel) from 'fit --skeleton-out'.")
+@click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
+@bvh_options
+@click.option("--report", "report_path", type=click.Path(), default=None, help="Also write a JSON report here.")
+@click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Write the markers plus virtual joint markers (.c3d or .trc).")
+@read_options
+@common
+def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out, exclude, include):
+    """Solve another take of a subject by IK alone, with the skeleton fitted on its calibration take.
+
+    Markers are matched by label; missing ones are tolerated, unknown ones ignored
+    with a warning; a take with too few known labels is refused (exit 4).
+
+    \b
+    Example:
+        mocapskel fit rom.c3d -o rom.bvh --skeleton-out subject.skel
+        mocapskel solve walk.c3d --skeleton subject.skel -o walk.bvh
+    """
+    check_output(output, input, suffixes=(".bvh",))
+    if report_path:
+        check_output(report_path, input, suffixes=(".json",))
+    if markers_out:
+        check_output(markers_out, input, suffixes=(".c3d", ".trc"))
+    skel = read_skeleton(skeleton_path)
+    params = pipeline.make_params(up=up, units=units)
+    res = pipeline.solve(input, skel, params, read=make_read(exclude, include))
+    b = res.bvh
+    write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    if report_path:
+        write_report(report_path, res.report)
+    if markers_out:
+        write_markers_out(markers_out, res.motion, input, make_read(exclude, include))
+    for w in res.report["warnings"]:
+        log.warning("warning: %s", w)
+    log.info("wrote %s: %d frames, marker rms %.2f mm", output, b.root_pos.shape[0], res.report["ik"]["marker_rms_mm"] or float("nan"))
