@@ -245,13 +245,13 @@ def test_sara_recovers_the_axis_noise_free():
 
 
 def test_sara_axis_from_noisy_markers():
-    from mocapskel.solvers.score import _group_pose
+    from mocapskel.solvers.score import group_pose
 
     rng = np.random.default_rng(10)
     R1, t1, R2, t2, J = _poses(rng, 1000, hinge=True)
     A = _markers(R1, t1, M1) + rng.normal(0, 1.0, (1000, 4, 3))
     B = _markers(R2, t2, M2) + rng.normal(0, 1.0, (1000, 4, 3))
-    P1, P2 = _group_pose(A, "A"), _group_pose(B, "B")
+    P1, P2 = group_pose(A, "A"), group_pose(B, "B")
     fit = sara(P1[0], P1[1], P2[0], P2[1])
     assert fit.ok
     # compare in the lab: the estimated lab axis against the true one

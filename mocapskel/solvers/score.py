@@ -612,7 +612,7 @@ def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def _group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """Per-frame pose of a marker group against its first complete frame; a reason on failure."""
     F, K, _ = P.shape
     if K < 3:
@@ -669,10 +669,10 @@ def score_from_markers(
     if A.ndim != 3 or B.ndim != 3 or A.shape[2] != 3 or B.shape[2] != 3 or A.shape[0] != B.shape[0]:
         raise ValueError(f"A and B must be (F, N, 3) with the same F, got {A.shape} and {B.shape}")
     F = A.shape[0]
-    pa = _group_pose(A, "A")
+    pa = group_pose(A, "A")
     if isinstance(pa, str):
         return _nan_score(F, pa)
-    pb = _group_pose(B, "B")
+    pb = group_pose(B, "B")
     if isinstance(pb, str):
         return _nan_score(F, pb)
     R1, t1, ref1 = pa

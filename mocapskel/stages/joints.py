@@ -18,7 +18,7 @@ from ..errors import DataError
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import jmv_joint, joint_cost
 from ..solvers.rigid import kabsch
-from ..solvers.score import score_from_markers
+from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
 VERSION = 1
@@ -49,42 +49,49 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     F = pts.shape[0]
     per_joint: list[dict] = [{} for _ in range(E)]
     warnings: list[str] = []
+    centres = np.full((F, E, 3), np.nan)
+    methods = ["none"] * E
+    done = np.zeros(E, dtype=bool)
+    hinges: dict[int, tuple] = {}
+    if params.method in ("score", "auto"):
+        poses = [group_pose(g, str(s)) for s, g in enumerate(groups)]  # (R, t, reference shape) or a reason
+        for e, (a, b) in enumerate(edges):
+            if isinstance(poses[a], str) or isinstance(poses[b], str):
+                continue
+            (R1, t1, ref1), (R2, t2, ref2) = poses[a], poses[b]
+            fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=params.hinge_ratio)
+            if not fit.ok:
+                continue
+            if fit.hinge:
+                hinges[e] = (fit, R1)
+            centres[:, e] = centre_from_either_side(fit, poses[a], poses[b])
+            methods[e] = "score-hinge" if fit.hinge else "score"
+            per_joint[e]["why"] = (
+                "both segments have 3+ markers: SCoRE linear least squares"
+                + ("; hinge-like motion, centre on the axis nearest the markers" if fit.hinge else "")
+            )
+            per_joint[e]["hinge"] = bool(fit.hinge)
+            done[e] = True
     if params.method == "jmv":
-        centres = np.full((F, E, 3), np.nan)
-        methods = []
         for e, (a, b) in enumerate(edges):
             fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
             centres[:, e] = fit.centre
-            methods.append("jmv")
+            methods[e] = "jmv"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
-    else:
+        done[:] = True
+    if not done.all():  # the hybrid framework (MTB, propagation, JMV) for the rest
         tree = solve_tree(groups, edges, alpha=params.alpha)
-        centres = tree.centres
-        methods = list(tree.method)
-        centres = centres.copy()
-        for e in range(E):
+        for e in np.flatnonzero(~done):
+            centres[:, e] = tree.centres[:, e]
+            methods[e] = tree.method[e]
             per_joint[e]["why"] = _why(tree.method[e], tree.category, edges[e])
             if not tree.ok[e]:
                 per_joint[e]["note"] = tree.reason[e]
-    hinges: dict[int, tuple] = {}
-    if params.method in ("score", "auto"):
-        for e, (a, b) in enumerate(edges):
-            fit = score_from_markers(groups[a], groups[b], hinge_threshold=params.hinge_ratio)
-            if fit.ok and fit.hinge:
-                hinges[e] = (fit, a, b)
-            if fit.ok:
-                centres[:, e] = centre_from_either_side(fit, groups[a], groups[b])
-                methods[e] = "score-hinge" if fit.hinge else "score"
-                per_joint[e]["why"] = (
-                    "both segments have 3+ markers: SCoRE linear least squares"
-                    + ("; hinge-like motion, centre on the axis nearest the markers" if fit.hinge else "")
-                )
-                per_joint[e]["hinge"] = bool(fit.hinge)
-            elif params.method == "score":
-                per_joint[e]["note"] = f"SCoRE not possible ({fit.reason}); {methods[e]} used"
-    for e, (fit, a, b) in hinges.items():
-        centres[:, e], shift = place_on_hinge(fit, groups[a], centres, edges, e)
+            if params.method == "score":
+                per_joint[e]["note"] = f"SCoRE needs 3+ markers on both segments; {tree.method[e]} used"
+    for e, (fit, R1) in hinges.items():
+        centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e)
         if shift is not None:
             per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
     if params.method == "sphere":
@@ -119,40 +126,42 @@ def _why(method: str, category: tuple[str, ...], edge: np.ndarray) -> str:
     }.get(method, cats)
 
 
-def place_on_hinge(fit, A: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
+def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
     """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints.
 
     A hinge's centre is undetermined along its axis. Anatomically (a knee
     between hip and ankle, an elbow between shoulder and wrist) the centre lies
     where the axis meets the plane of the adjacent joint centres; those are
     fixed in one of the two segments, so their distance along the axis is
-    constant. fit : a hinge ScoreFit from score_from_markers; A : (F, Na, 3)
-    markers of the fit's first segment. Returns (centre (F, 3), shift or None).
+    constant. fit : a hinge ScoreFit; R1 : (F, 3, 3) rotations of the fit's
+    first segment; centres : (F, E, 3) all joint centres so far.
+    Returns (centre (F, 3), shift or None).
     """
     a, b = edges[e]
     nb = [k for k in range(edges.shape[0]) if k != e and (a in edges[k] or b in edges[k])]
-    R1, t1, _ = kabsch(fit.markers1, A)
+    base = centres[:, e].copy()
     if not nb:
-        return fit.centre, None
+        return base, None
     u = np.einsum("fij,j->fi", R1, fit.axis1)
-    s = np.stack([np.einsum("fi,fi->f", centres[:, k] - fit.centre, u) for k in nb], axis=1)
+    s = np.stack([np.einsum("fi,fi->f", centres[:, k] - base, u) for k in nb], axis=1)
     ok = np.isfinite(s)
     if not ok.any():
-        return fit.centre, None
+        return base, None
     per_frame = np.where(ok, s, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
     shift = float(np.median(per_frame[ok.any(axis=1)]))
-    return fit.centre + shift * u, shift
+    return base + shift * u, shift
 
 
-def centre_from_either_side(fit, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+def centre_from_either_side(fit, pose1: tuple, pose2: tuple) -> np.ndarray:
     """Joint centre per frame from a SCoRE fit, using whichever segment is seen.
 
     ``fit.centre`` needs both segments' poses; where only one is known the
-    centre is still fixed in that one. A, B : (F, Na, 3), (F, Nb, 3) markers
-    of the fit's two segments. Returns (F, 3), NaN where neither is seen.
+    centre is still fixed in that one. pose1, pose2 : (R (F, 3, 3), t (F, 3),
+    reference shape) of the fit's two segments. Returns (F, 3), NaN where
+    neither is seen.
     """
-    R1, t1, _ = kabsch(fit.markers1, A)
-    R2, t2, _ = kabsch(fit.markers2, B)
+    R1, t1, _ = pose1
+    R2, t2, _ = pose2
     p1 = np.einsum("fij,j->fi", R1, fit.c1) + t1
     p2 = np.einsum("fij,j->fi", R2, fit.c2) + t2
     ok1 = np.isfinite(p1).all(1)
