@@ -1,0 +1,57 @@
+"""Speed and memory of ``fit``: the read floor, long takes, and scaling in frames and markers.
+
+    python -m bench.speed            # markdown to stdout
+
+Every measurement runs in a fresh process (bench.fit_case / bench.read_case).
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+
+from bench.common import run_isolated, table
+
+
+def fit(frames: int, seed: int = 1, mps: int | None = None, repeats: int = 1) -> dict:
+    args = ["--frames", str(frames), "--seed", str(seed), "--noise", "1", "--soft-tissue", "2", "--gaps", "4"]
+    if mps:
+        args += ["--mps", str(mps)]
+    runs = [run_isolated("fit_case", *args) for _ in range(repeats)]
+    out = dict(runs[-1])
+    out["total_s"] = statistics.median(r["total_s"] for r in runs)
+    return out
+
+
+def main() -> None:
+    print("### Long takes (active human ROM: 48 markers, 120 Hz, 1 mm noise, 2 mm soft tissue, gaps)\n")
+    rows = []
+    for frames, reps in ((7200, 3), (60000, 1)):
+        r = fit(frames, repeats=reps)
+        rd = run_isolated("read_case", "--frames", str(frames))
+        st = r["seconds"]
+        rows.append([f"{frames} ({frames / 7200:.3g} min)", round(r["total_s"], 2), round(rd["read_s"], 2),
+                     round(r["total_s"] / max(rd["read_s"], 1e-9), 1), round(r["peak_rss_mb"]),
+                     " ".join(f"{k} {v:.2f}" for k, v in st.items()), round(r["joint_rms_mm"], 2), "yes" if r["topology_ok"] else "NO"])
+        print(f"  {frames}: {rows[-1]}", file=sys.stderr)
+    print(table(["frames", "fit (s, median)", "ezc3d read alone (s)", "fit / read", "peak RSS (MB)", "seconds per stage",
+                 "joint rms (mm)", "topology right"], rows))
+    print("\n### Scaling in frames (48 markers)\n")
+    rows = []
+    for frames in (1000, 3000, 10000, 30000, 60000):
+        r = fit(frames)
+        rows.append([frames, round(r["total_s"], 2), round(1e6 * r["total_s"] / frames, 1), round(r["peak_rss_mb"]),
+                     round(r["seconds"].get("ik", 0), 2), round(r["seconds"].get("joints", 0), 2)])
+        print(f"  frames {frames}: {rows[-1]}", file=sys.stderr)
+    print(table(["frames", "fit (s)", "µs per frame", "peak RSS (MB)", "ik (s)", "joints (s)"], rows))
+    print("\n### Scaling in markers (7200 frames; markers per segment 1 … 6)\n")
+    rows = []
+    for mps in (1, 2, 3, 4, 6):
+        r = fit(7200, mps=mps)
+        rows.append([r["markers"], round(r["total_s"], 2), round(r["peak_rss_mb"]),
+                     " ".join(f"{k} {v:.2f}" for k, v in r["seconds"].items() if v > 0.05), round(r["joint_rms_mm"], 2)])
+        print(f"  mps {mps}: {rows[-1]}", file=sys.stderr)
+    print(table(["markers", "fit (s)", "peak RSS (MB)", "stages over 0.05 s", "joint rms (mm)"], rows))
+
+
+if __name__ == "__main__":
+    main()
