@@ -411,3 +411,24 @@ def test_bad_shapes_are_rejected():
         solve_ik(parent, origin, seg, loc, np.zeros((5, 2, 3)), init_rot=np.zeros((5, 3, 3, 3)))
     with pytest.raises(ValueError, match="marker_segment"):
         solve_ik(parent, origin, np.array([0, 2]), loc, np.zeros((5, 2, 3)))
+
+
+def test_single_segment_single_frame_and_markerless_segment():
+    rng = np.random.default_rng(16)
+    parent, origin = np.array([-1]), np.zeros((1, 3))
+    seg, loc = np.zeros(4, int), rng.normal(0, 50, (4, 3))
+    R, root = make_motion(rng, 10, 1)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    res = solve_ik(parent, origin, seg, loc, x)
+    np.testing.assert_allclose(res.rot, R, atol=1e-9)
+    np.testing.assert_allclose(res.root_pos, root, atol=1e-9)
+    res = solve_ik(parent, origin, seg, loc, x[:1])
+    np.testing.assert_allclose(res.rot, R[:1], atol=1e-9)
+    # a segment without markers, placed by its parent and its two children
+    parent = np.array([-1, 0, 1, 1])
+    origin = np.array([[0.0, 0, 0], [0, 0, 200], [100, 0, 400], [-100, 50, 380]])
+    seg, loc = np.array([0, 0, 0, 2, 2, 2, 3, 3, 3]), rng.normal(0, 50, (9, 3))
+    R, root = make_motion(rng, 30, 4)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    res = solve_ik(parent, origin, seg, loc, x)
+    np.testing.assert_allclose(res.rot, R, atol=1e-6)

@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from mocapskel.solvers import rigid
 from mocapskel.solvers.rigid import kabsch, procrustes_shape
 
 
@@ -158,6 +159,40 @@ def test_kabsch_property_recovers_any_rigid_motion(seed, P, scale):
     Rh, th, rms = kabsch(ref, _apply(R, t, ref))
     np.testing.assert_allclose(Rh, R, atol=1e-7)
     assert np.all(rms <= 1e-9 * max(scale, 2000))
+
+
+def test_fast_rotation_matches_svd_on_hard_cases():
+    """The quaternion/Newton rotation equals the SVD one, including special configurations."""
+    rng = np.random.default_rng(7)
+    cases = []
+    a = rng.normal(0, 100, (5, 3))
+    for R in [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, -1, 1]), Rotation.from_rotvec([0, 0, np.pi - 1e-9]).as_matrix()]:
+        cases.append((a, a @ R.T))  # identity and half turns
+    tet = np.array([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) * 50  # isotropic scatter
+    Rr = Rotation.random(random_state=rng).as_matrix()
+    cases.append((tet, tet @ Rr.T))
+    tri = np.array([[0.0, 0, 0], [100, 0, 0], [50, 50 * np.sqrt(3), 0]])  # equilateral, planar
+    cases.append((tri, tri @ Rr.T))
+    cases.append((a, a * np.array([1, 1, -1])))  # mirror image
+    cases.append((a, rng.normal(0, 100, (5, 3))))  # unrelated points
+    H = []
+    for ref, obs in cases:
+        ref = ref - ref.mean(0)
+        obs = obs - obs.mean(0)
+        H.append(ref.T @ obs)
+    H = np.array(H)
+    R_fast = rigid._best_rotation(H)
+    R_svd = rigid._svd_rotation(H)
+    obj_fast = np.einsum("nij,nji->n", R_fast, H)
+    obj_svd = np.einsum("nij,nji->n", R_svd, H)
+    assert np.all(obj_fast >= obj_svd - 1e-9 * np.abs(H).max())
+    np.testing.assert_allclose(np.linalg.det(R_fast), 1, atol=1e-12)
+    np.testing.assert_allclose(R_fast @ np.swapaxes(R_fast, 1, 2), np.broadcast_to(np.eye(3), H.shape), atol=1e-12)
+    unique = [0, 1, 2, 3, 4, 5, 7]  # the mirror case has a non-unique optimum
+    np.testing.assert_allclose(R_fast[unique], R_svd[unique], atol=1e-9)
+    # rank-1 H: no unique rotation; the fallback still returns a rotation
+    R1 = rigid._best_rotation(np.outer([1.0, 2, 3], [3.0, 1, 0])[None])
+    np.testing.assert_allclose(np.linalg.det(R1), 1, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- Procrustes

@@ -16,10 +16,13 @@ all frames,
     sum_m w_m |x_m - y_m|^2  +  prior_weight * sum_s |log(R_s R_prior,s^T)|^2
 
 by Levenberg-Marquardt with global left-multiplicative increments
-``R_s <- exp([d_s]x) R_s``. The normal equations are assembled from per-segment
-sums (no dense Jacobian) and solved by block elimination along the tree
-(leaves first), which creates no fill-in: the cost grows with the sum of squared
-segment depths, not with the cube of the number of segments.
+``R_s <- exp([d_s]x) R_s``. No Jacobian is formed: a segment's gradient and
+Gauss-Newton Hessian come from a few per-frame sums over its markers
+(weighted centroids and cross-covariances, computed once), and the damped
+normal equations are solved by eliminating the segments leaves first, each
+leaving a 3x3 stiffness on its joint for the parent (the articulated-body
+recursion). An iteration is O(S) 3x3 operations per frame, whatever the
+number of markers and the depth of the tree.
 """
 from __future__ import annotations
 
@@ -46,7 +49,8 @@ class IKResult:
     n_iter : int
         Number of iterations run (at most ``iterations``).
     converged : (F,) ndarray of bool
-        Whether the last step of the frame was below the tolerance.
+        Whether the frame converged: its last step was below the tolerance,
+        or the linearised model could no longer lower its cost.
     """
 
     root_pos: np.ndarray
@@ -347,10 +351,11 @@ class _Model:
     segment-major; markers in per-segment slots (S, F, 3, K), K the most
     markers on one segment, padding slots with weight 0.
 
-    The iterations never touch single markers: for fixed observations and
-    weights, a segment's cost, gradient and Gauss-Newton Hessian are
-    functions of a few per-frame sums (:meth:`stats`), so an iteration costs
-    O(S) 3x3 operations per frame whatever the number of markers.
+    The Gauss-Newton steps never touch single markers: for fixed observations
+    and weights, a segment's gradient and Hessian are functions of a few
+    per-frame sums (:meth:`stats`), so a step costs O(S) 3x3 operations per
+    frame whatever the number of markers. (The cost, which decides whether a
+    step is taken, is evaluated marker by marker: one BLAS product.)
     """
 
     def __init__(self, tree: _Tree, origin: np.ndarray, seg: np.ndarray, local: np.ndarray):
@@ -412,10 +417,12 @@ class _Model:
 
     # ---- sufficient statistics of the data
     def stats(self, y: np.ndarray, w: np.ndarray) -> dict[str, np.ndarray]:
-        """Per segment and frame: W = sum w, lbar / ybar the weighted centroids of the
-        rest offsets and of the observations, Cc = sum w (y - ybar)(l - lbar)^T,
-        Cw = sum w l l^T, c0 = sum w (|l - lbar|^2 + |y - ybar|^2).
-        ``y`` (S, F, 3, K) and ``w`` (S, F, K) in slot layout."""
+        """Per segment and frame sums of the data that the iterations need.
+
+        W = sum w; lbar and ybar, the weighted centroids of the rest offsets and
+        of the observations; Cc = sum w (y - ybar)(l - lbar)^T; Cw = sum w l l^T.
+        ``y`` (S, F, 3, K) and ``w`` (S, F, K) in slot layout.
+        """
         S, F = w.shape[:2]
         W = w.sum(-1)
         Wd = np.where(W > 0, W, 1.0)
@@ -424,9 +431,8 @@ class _Model:
         yc = y - ybar[..., None]  # (S, F, 3, K)
         lc = self.lp[:, None] - lbar[:, :, None, :]  # (S, F, K, 3)
         Cc = (yc * w[:, :, None, :]) @ lc
-        c0 = np.einsum("sfk,sfk->sf", w, (lc * lc).sum(-1)) + np.einsum("sfk,sfik->sf", w, yc * yc)
         Cw = (w @ self.lout).reshape(S, F, 3, 3)
-        return {"W": W, "lbar": lbar, "ybar": ybar, "Cc": Cc, "Cw": Cw, "c0": c0}
+        return {"W": W, "lbar": lbar, "ybar": ybar, "Cc": Cc, "Cw": Cw}
 
     def cost(
         self, p: np.ndarray, R: np.ndarray, y: np.ndarray, w: np.ndarray
@@ -442,7 +448,7 @@ class _Model:
         r += P[..., None]
         r -= y
         r *= r
-        c = np.einsum("sfk,sfk->f", w, r.sum(2))
+        c = np.einsum("sfk,sfk->f", w, r[:, :, 0] + r[:, :, 1] + r[:, :, 2])
         return G, P, c
 
     def step(
@@ -600,7 +606,8 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
 
     ``yt`` (F, M, 3) observed markers, ``w`` (F, M) weights (0 where unseen).
 
-    1. Kabsch of each segment's visible markers (>= 3, not collinear).
+    1. Kabsch of each segment's visible markers (>= 3, spread across their
+       main axis by at least ``_INIT_SPREAD`` of their extent along it).
     2. Twice, for frames still unsolved: Kabsch of the segment's markers plus
        its joints placed by the neighbours solved in that frame (the parent's
        pose places the segment's origin, a child's pose places the child's joint).
@@ -746,34 +753,44 @@ def solve_ik(
         without markers are interpolated linearly over time.
     prior_rot : (F, S, 3, 3) ndarray, optional
         Target of the rotation prior. Default: built from the data — per
-        segment, Kabsch of its markers where at least 3 non-collinear ones
-        are seen; else Kabsch of its markers plus the joints placed by the
-        neighbouring segments solved in that frame; else slerp over time
-        between such frames (held at the ends) or, for a segment never
-        solved, its parent's rotation; finally, where the available points
-        give a single direction, the smallest rotation matching it. So the
+        segment, Kabsch of its markers where at least 3 are seen and spread
+        across their main axis by at least 5% of their extent along it;
+        else Kabsch of its markers plus the joints placed by the neighbouring
+        segments solved in that frame; else slerp over time between such
+        frames (held at the ends) or, for a segment never solved, its
+        parent's rotation; finally, where the available points give a single
+        direction, the smallest rotation of that guess matching it. So the
         prior agrees with the data where the data determine the rotation,
-        and fills gaps and undetermined twists smoothly.
+        and fills gaps and undetermined twists smoothly. Where it is only
+        a guess (gaps, chains of poorly marked segments) it pulls the
+        solution slightly away from the data's optimum: about
+        ``prior_weight * angle / stiffness`` rad.
     weights : (F, M) or (M,) ndarray, optional
         Non-negative marker weights (default 1; NaN markers get 0).
     iterations : int, optional
         Maximum number of Levenberg-Marquardt iterations.
     damping : float, optional
-        Initial Levenberg-Marquardt damping (relative to the diagonal).
+        Initial Levenberg-Marquardt damping: every segment's rotation block
+        and the root block are scaled by ``1 + damping``; adapted per frame
+        from the gain ratio (Nielsen).
     prior_weight : float, optional
         Weight of the rotation prior in mm^2 per rad^2: the prior pulls like
         one marker ``sqrt(prior_weight)`` mm from the rotation axis (default:
-        10 mm). Keep it positive so that segments with too few markers
-        (or none) in a frame stay determined.
+        10 mm; a marker 100 mm from its joint weighs 10^4). Keep it positive
+        so that segments with too few markers (or none) in a frame stay
+        determined.
     tol : float, optional
-        A frame has converged when its last step moves no point of the
-        skeleton by more than about ``tol`` mm.
+        A frame has converged (and leaves the iteration) when its last step
+        moves no point of the skeleton by more than about ``tol`` mm, or when
+        the linearised model can no longer lower its cost.
 
     Returns
     -------
     IKResult
-        ``root_pos`` (F, 3), ``rot`` (F, S, 3, 3), ``residual`` (F, M), ``n_iter``,
-        ``converged`` (F,). All finite (``residual`` is NaN for unseen markers).
+        ``root_pos`` (F, 3), ``rot`` (F, S, 3, 3) in the caller's segment
+        order, ``residual`` (F, M), ``n_iter``, ``converged`` (F,). Pose
+        arrays are finite in every frame, including frames where nothing is
+        seen (held or interpolated); ``residual`` is NaN for unseen markers.
 
     Raises
     ------
