@@ -17,7 +17,7 @@ from ..solvers.ik import solve_ik
 from ..solvers.rigid import kabsch
 from ..solvers.rotations import slerp_fill
 
-VERSION = 1
+VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -75,16 +75,43 @@ def _edges(skel: Skeleton) -> np.ndarray:
     return np.stack([skel.parent[kids], kids], axis=1) if kids.size else np.zeros((0, 2), dtype=int)
 
 
-def solve(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10, rate: float = 0.0, source: str = "") -> Motion:
-    """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``)."""
+def solve(
+    skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10,
+    rate: float = 0.0, source: str = "", chunk: int = 2048,
+) -> Motion:
+    """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``).
+
+    centres : (F, E, 3) joint centres (edges in ``_edges(skel)`` order) for the
+    start, or None (the solver then starts from the markers alone).
+    """
     if not np.isfinite(points).any():
         raise DataError("no marker is seen in any frame", source or None)
-    rot0, root0 = initial_pose(skel, points, centres)
-    res = solve_ik(
-        skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points,
-        init_rot=rot0, init_root=root0, iterations=iterations,
-    )
-    resid = res.residual
+    F = points.shape[0]
+    S = len(skel.names)
+    rot = np.empty((F, S, 3, 3))
+    root_pos = np.empty((F, 3))
+    resid = np.empty((F, points.shape[1]))
+    rot0 = root0 = None
+    if centres is not None:  # a start (and prior) from markers and joint centres, gaps bridged over the whole take
+        rot0, root0 = initial_pose(skel, points, centres)
+    for a in range(0, F, chunk):  # chunks keep the working arrays in cache and memory bounded
+        b = min(F, a + chunk)
+        if not np.isfinite(points[a:b]).any():
+            continue  # nothing seen in this stretch: filled below
+        kw = {} if rot0 is None else {"init_rot": rot0[a:b], "init_root": root0[a:b], "prior_rot": rot0[a:b]}
+        res = solve_ik(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points[a:b], iterations=iterations, **kw)
+        rot[a:b], root_pos[a:b], resid[a:b] = res.rot, res.root_pos, res.residual
+    empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
+    if empty:  # whole chunks with nothing seen: hold the nearest solved pose
+        solved = np.ones(F, dtype=bool)
+        for a in empty:
+            solved[a : min(F, a + chunk)] = False
+        idx = np.where(solved, np.arange(F), -1)
+        np.maximum.accumulate(idx, out=idx)
+        first = int(np.flatnonzero(solved)[0])
+        idx[idx < 0] = first
+        rot, root_pos = rot[idx], root_pos[idx]
+        resid[~solved] = np.nan
     info = {
         "version": VERSION,
         "rms_mm": float(np.sqrt(np.nanmean(resid**2))) if np.isfinite(resid).any() else None,
@@ -94,7 +121,7 @@ def solve(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None,
     for s, name in enumerate(skel.names):
         r = resid[:, skel.marker_segment == s]
         info["rms_mm_per_segment"][name] = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else None
-    return Motion(skeleton=skel, root_pos=res.root_pos, rot=res.rot, residual=resid, rate=rate, source=source, info=info)
+    return Motion(skeleton=skel, root_pos=root_pos, rot=rot, residual=resid, rate=rate, source=source, info=info)
 
 
 def run(skel: Skeleton, params: Params = Params()) -> Motion:
