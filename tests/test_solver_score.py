@@ -308,25 +308,3 @@ def test_bad_shapes_raise():
         score_from_markers(np.zeros((5, 4, 3)), np.zeros((6, 4, 3)))
     with pytest.raises(ValueError):
         score(np.zeros((5, 3, 3)), np.zeros((5, 3)), np.zeros((5, 3, 3)), np.zeros((5, 3)), weights=-np.ones(5))
-
-
-@pytest.mark.parametrize("n_markers, noise", [(3, 0.0), (4, 0.0), (3, 5.0), (6, 40.0)])
-def test_private_batched_rigid_fit_matches_svd_kabsch(n_markers, noise):
-    # the vectorised Horn/QCP fit behind score_from_markers against scipy's SVD-based fit
-    from mocapskel.solvers.score import _kabsch
-
-    rng = np.random.default_rng(13)
-    F = 200
-    ref = rng.normal(0, 50, (n_markers, 3))
-    ref -= ref.mean(0)
-    R = Rotation.random(F, random_state=rng).as_matrix()
-    t = rng.uniform(-2000, 2000, (F, 3))
-    obs = _markers(R, t, ref) + rng.normal(0, noise, (F, n_markers, 3))
-    Rh, th = _kabsch(ref, obs)
-    for f in range(0, F, 20):
-        b = obs[f] - obs[f].mean(0)
-        expected = Rotation.align_vectors(b, ref)[0].as_matrix()
-        np.testing.assert_allclose(Rh[f], expected, atol=1e-9)
-    if noise == 0:
-        np.testing.assert_allclose(Rh, R, atol=1e-12)
-        np.testing.assert_allclose(th, t, atol=1e-9)

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .horn import horn_rotation
+from .rigid import kabsch
 
 __all__ = ["ScoreFit", "SaraFit", "score", "score_hinge", "sara", "score_from_markers"]
 
@@ -564,54 +564,6 @@ def sara(
 # poses from markers
 
 
-def _kabsch(ref: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched rigid fit: R (F,3,3), t (F,3) with obs[f] ~ R[f] ref + t[f].
-
-    NaN markers are left out per frame; frames with fewer than 3 visible
-    markers, or collinear visible markers, get NaN.
-    """
-    F, P, _ = obs.shape
-    vis = np.isfinite(obs[..., 0] + obs[..., 1] + obs[..., 2])  # (F, P)
-    if vis.all():
-        cnt = np.full(F, float(P))
-        ca = np.broadcast_to(ref.mean(0), (F, 3))
-        cb = sum(obs[:, p] for p in range(P)) / P  # loop over markers, not frames
-        a = ref - ca[0]
-        b = obs - cb[:, None]
-        X = a.T @ b.transpose(1, 0, 2).reshape(P, 3 * F)  # (3, 3F): X[i, 3f + j] = S_ij(f)
-        S = np.ascontiguousarray(X.reshape(3, F, 3).transpose(0, 2, 1)).reshape(9, F)
-        ga = np.full(F, np.einsum("pi,pi->", a, a))
-        C = np.broadcast_to(a.T @ a, (F, 3, 3))
-    else:
-        w = vis.astype(float)
-        cnt = w.sum(1)
-        csafe = np.where(cnt > 0, cnt, 1.0)[:, None]
-        ca = (w @ ref) / csafe
-        cb = np.einsum("fp,fpi->fi", w, np.where(vis[..., None], obs, 0.0)) / csafe
-        a = np.where(vis[..., None], ref[None] - ca[:, None], 0.0)
-        b = np.where(vis[..., None], obs - cb[:, None], 0.0)
-        at = a.transpose(0, 2, 1)
-        S = np.ascontiguousarray(np.matmul(at, b).reshape(F, 9).T)
-        ga = np.einsum("fpi,fpi->f", a, a)
-        C = np.matmul(at, a)
-    # collinear: the second elementary symmetric function of the visible
-    # reference scatter (~ lambda1 lambda2) vanishes relative to its trace^2
-    tr = np.einsum("fii->f", C)
-    e2 = 0.5 * (tr**2 - np.einsum("fij,fij->f", C, C))
-    good = (cnt >= 3) & (tr > 0) & (e2 > COLLINEAR_TOL**2 * tr**2)
-    G = 0.5 * (ga + np.einsum("fpi,fpi->f", b, b))
-    if good.all():
-        R = horn_rotation(S, G)
-        return R, cb - _rotate(R, ca)
-    R = np.full((F, 3, 3), np.nan)
-    t = np.full((F, 3), np.nan)
-    if good.any():
-        Rg = horn_rotation(S[:, good], G[good])
-        R[good] = Rg
-        t[good] = cb[good] - _rotate(Rg, ca[good])
-    return R, t
-
-
 def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
     """Per-frame pose of a marker group against its first complete frame; a reason on failure."""
     F, K, _ = P.shape
@@ -624,7 +576,7 @@ def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.nda
     lam = np.linalg.eigvalsh(ref.T @ ref)
     if not (lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]):
         return f"group {name}: its markers are collinear, so its rotation about their line is undetermined"
-    R, t = _kabsch(ref, P)
+    R, t, _ = kabsch(ref, P)
     return R, t, ref
 
 
