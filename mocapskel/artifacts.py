@@ -22,7 +22,7 @@ import json
 import os
 import zipfile
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -198,15 +198,17 @@ PRODUCED_BY = {
 # --------------------------------------------------------------------------- save / load
 
 
-def _flatten(obj: Any, prefix: str, out: dict[str, np.ndarray]) -> None:
+def _flatten(obj: Any, prefix: str, out: dict[str, np.ndarray], refs: dict[int, str] | None = None) -> None:
     out[prefix + "__kind__"] = np.array(obj.kind)
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
         key = prefix + f.name
         if v is None:
             out[key + "__none__"] = np.array(True)
+        elif dataclasses.is_dataclass(v) and refs and id(v) in refs:
+            out[key + "__ref__"] = np.array(refs[id(v)])
         elif dataclasses.is_dataclass(v):
-            _flatten(v, key + "/", out)
+            _flatten(v, key + "/", out, refs)
         elif isinstance(v, np.ndarray):
             out[key] = v
         elif isinstance(v, dict):
@@ -219,7 +221,7 @@ def _flatten(obj: Any, prefix: str, out: dict[str, np.ndarray]) -> None:
             raise TypeError(f"cannot save field {key} of type {type(v).__name__}")
 
 
-def _unflatten(data: dict[str, np.ndarray], prefix: str) -> Any:
+def _unflatten(data: dict[str, np.ndarray], prefix: str, resolve: Callable[[str], Any] | None = None) -> Any:
     kind = str(data[prefix + "__kind__"])
     cls = ARTIFACT_TYPES[kind]
     kwargs = {}
@@ -227,8 +229,12 @@ def _unflatten(data: dict[str, np.ndarray], prefix: str) -> Any:
         key = prefix + f.name
         if key + "__none__" in data:
             kwargs[f.name] = None
+        elif key + "__ref__" in data:
+            if resolve is None:
+                raise KeyError(f"{key} refers to another artifact")
+            kwargs[f.name] = resolve(str(data[key + "__ref__"]))
         elif key + "/__kind__" in data:
-            kwargs[f.name] = _unflatten(data, key + "/")
+            kwargs[f.name] = _unflatten(data, key + "/", resolve)
         elif key + "__json__" in data:
             kwargs[f.name] = json.loads(str(data[key + "__json__"]))
         elif key + "__strs__" in data:
@@ -252,26 +258,33 @@ def _json_default(o: Any) -> Any:
     raise TypeError(type(o).__name__)
 
 
-def to_bytes(obj: Any) -> bytes:
-    """Serialise an artifact to the bytes of an ``.npz`` file."""
+def to_bytes(obj: Any, refs: dict[int, str] | None = None) -> bytes:
+    """Serialise an artifact to the bytes of an ``.npz`` file.
+
+    ``refs`` maps ``id()`` of nested artifacts to a reference string stored in
+    their place (the cache stores an upstream artifact once, by its key).
+    """
     out: dict[str, np.ndarray] = {"__schema__": np.array(SCHEMA)}
-    _flatten(obj, "", out)
+    _flatten(obj, "", out, refs)
     buf = io.BytesIO()
     np.savez(buf, **out)
     return buf.getvalue()
 
 
-def save(obj: Any, path: str | os.PathLike) -> None:
+def save(obj: Any, path: str | os.PathLike, refs: dict[int, str] | None = None) -> None:
     """Save an artifact to ``path`` atomically (temporary file, then rename)."""
     from .io.atomic import atomic_write_bytes
 
-    atomic_write_bytes(path, to_bytes(obj))
+    atomic_write_bytes(path, to_bytes(obj, refs))
 
 
-def load(path: str | os.PathLike) -> Any:
-    """Load an artifact saved by :func:`save`. Raises InputError when it is not one."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
+def load(path: str | os.PathLike, resolve: Callable[[str], Any] | None = None) -> Any:
+    """Load an artifact saved by :func:`save`. Raises InputError when it is not one.
+
+    ``resolve`` turns a stored reference back into the artifact (see :func:`to_bytes`).
+    """
+    try:  # open the file here: np.load leaks its own handle when the zip is damaged (ResourceWarning)
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
         raise InputError(f"not a readable mocapskel artifact ({e}) — re-run the stage that wrote it", str(path)) from None
@@ -282,7 +295,7 @@ def load(path: str | os.PathLike) -> Any:
             f"artifact schema {int(data['__schema__'])} is not this version's ({SCHEMA}) — re-run from the take", str(path)
         )
     try:
-        return _unflatten(data, "")
+        return _unflatten(data, "", resolve)
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(f"damaged mocapskel artifact ({e}) — re-run the stage that wrote it", str(path)) from None
 

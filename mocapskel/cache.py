@@ -3,7 +3,10 @@
 Key = SHA-256 of a canonical JSON record {stage, stage VERSION, params,
 upstream key}; the first key is the hash of the input file's bytes (and the
 reader's options). Entries are ``<key>.npz`` files written atomically; an
-entry that cannot be read is deleted, recomputed and reported.
+entry holds its upstream artifact by reference (that artifact's key), so the
+markers of a take are stored once, not once per stage. An entry that cannot be
+read is deleted, recomputed and reported; one whose upstream entry is gone is
+simply recomputed.
 """
 from __future__ import annotations
 
@@ -42,6 +45,10 @@ def stage_key(stage: str, version: int, params: Any, upstream: str) -> str:
     return hashlib.sha256(rec.encode()).hexdigest()
 
 
+class _MissingUpstream(LookupError):
+    """A cache entry refers to an upstream entry that is gone."""
+
+
 class Cache:
     """A folder of artifacts by key. ``Cache(None)`` caches nothing."""
 
@@ -62,13 +69,16 @@ class Cache:
                 self.warnings.append(msg)
 
     def get(self, key: str, stage: str) -> Any | None:
+        """The artifact stored under ``key`` (its upstream artifacts resolved by key), or None."""
         if self.folder is None:
             return None
         path = self.folder / f"{key}.npz"
         if not path.exists():
             return None
         try:
-            return artifacts.load(path)
+            return artifacts.load(path, resolve=lambda ref: self._upstream(ref, stage))
+        except _MissingUpstream:
+            return None
         except InputError:
             msg = f"{stage}: cache entry {path.name} was unreadable — deleted and recomputed"
             log.warning(msg)
@@ -79,11 +89,19 @@ class Cache:
                 pass
             return None
 
-    def put(self, key: str, obj: Any) -> None:
+    def _upstream(self, ref: str, stage: str) -> Any:
+        obj = self.get(ref, stage)
+        if obj is None:
+            raise _MissingUpstream(ref)
+        return obj
+
+    def put(self, key: str, obj: Any, upstream: tuple[Any, str] | None = None) -> None:
+        """Store ``obj`` under ``key``; ``upstream`` = (artifact nested in obj, its key) is stored by reference."""
         if self.folder is None:
             return
+        refs = {id(upstream[0]): upstream[1]} if upstream is not None else None
         try:
-            artifacts.save(obj, self.folder / f"{key}.npz")
+            artifacts.save(obj, self.folder / f"{key}.npz", refs=refs)
         except OSError as e:
             msg = f"could not write cache entry ({e.strerror}) — continuing without it"
             log.warning(msg)

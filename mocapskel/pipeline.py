@@ -133,9 +133,12 @@ def run_until(
         else:
             if progress:
                 progress(stage)
+            before, before_key = run.artifact, run.key
             run.artifact = mod.run(run.artifact, p)
             if key != "memory":
-                cache.put(k, run.artifact)
+                # the upstream artifact is stored by reference when it is itself a cache entry
+                up = (before, before_key) if stage != STAGES[_index(have) + 1] else None
+                cache.put(k, run.artifact, upstream=up)
             log.info("%-9s done in %.2f s", stage, time.perf_counter() - t)
         run.seconds[stage] = time.perf_counter() - t
         run.key = k
