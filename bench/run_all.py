@@ -10,6 +10,8 @@ from bench.common import REPO, machine
 
 BENCHES = [
     ("Accuracy and time of `fit` on generated takes", "bench.accuracy"),
+    ("Speed and memory", "bench.speed"),
+    ("Joint-centre estimators against the papers", "bench.joints"),
 ]
 
 

@@ -2,10 +2,19 @@
 
 Methods (``Params.method``):
 
+- ``score``: SCoRE (Ehrig et al. 2006), the joint fixed in both segments'
+  frames by linear least squares; hinge-like joints (small axis ratio) get
+  their centre on the axis, in the plane of the neighbouring joints;
 - ``mtb``: Hang et al. 2015 — marker-trajectory bases with solvability
   propagation, JMV only where nothing else can (the hybrid framework);
 - ``jmv``: Kirk et al. 2005 — joint-marker-variance optimisation, every joint;
-- ``auto``: per joint, the best available (see :func:`run`).
+- ``sphere``: Knight & Semwal 2009 — the unbiased multi-radius sphere fit
+  (MGDK) of one segment's markers in the other's frame;
+- ``auto``: per joint, the estimator that was best in ``bench/joints.py``
+  (realistic noise and soft tissue, 10 seeds): SCoRE when both segments carry
+  3+ markers; the sphere fit when one of them carries a single marker; JMV
+  otherwise (2-marker segments), joint by joint — propagating MTB through a
+  JMV-solved joint amplifies its error under noise.
 """
 from __future__ import annotations
 
@@ -21,7 +30,7 @@ from ..solvers.rigid import kabsch
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 1
+VERSION = 2
 
 METHODS = ("auto", "jmv", "mtb", "sphere", "score")
 
@@ -31,7 +40,7 @@ class Params:
     method: str = "auto"
     alpha: float = 0.0
     """Kirk's distance penalty in the final fit (0: dropped, as the paper's discussion advises)."""
-    hinge_ratio: float = 0.3
+    hinge_ratio: float = 0.4
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints."""
 
@@ -72,6 +81,22 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             )
             per_joint[e]["hinge"] = bool(fit.hinge)
             done[e] = True
+    if params.method == "auto":  # the rules measured in bench/joints.py (see the module docstring)
+        for e, (a, b) in enumerate(edges):
+            if done[e]:
+                continue
+            na, nb = groups[a].shape[1], groups[b].shape[1]
+            if max(na, nb) >= 3 and min(na, nb) == 1:
+                c, side = sphere_centre(groups[a], groups[b])
+                if side is not None:
+                    centres[:, e], methods[e], done[e] = c, "sphere", True
+                    per_joint[e]["why"] = f"a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
+                    continue
+            fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
+            centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
+            per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
+            if not fit.ok:
+                per_joint[e]["note"] = fit.reason
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
             fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
