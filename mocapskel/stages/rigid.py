@@ -17,7 +17,7 @@ from ..artifacts import Joints, Skeleton
 from ..errors import DataError
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 1
+VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -27,7 +27,7 @@ class Params:
     rest_search: float = 0.25
     """Fraction of the take (from the start) searched for the rest frame."""
     iters: int = 5
-    max_frames: int = 1500
+    max_frames: int = 600
     """Frames used to fit the shapes (spread over the take, the rest frame among them);
     more add nothing measurable to constant offsets and cost time."""
 

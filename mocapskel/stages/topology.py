@@ -16,12 +16,12 @@ from ..artifacts import Segments, Topology
 from ..errors import DataError
 from ..solvers.jmv import pair_cost
 
-VERSION = 1
+VERSION = 2
 
 
 @dataclass(frozen=True)
 class Params:
-    n_frames: int = 150
+    n_frames: int = 100
     """Frames (evenly spread over the take, best-visible first) used for the pair costs."""
     alpha: float = 0.01
     """Kirk's distance penalty (mm^2 of cost per mm of mean distance)."""
