@@ -12,6 +12,7 @@ BENCHES = [
     ("Accuracy and time of `fit` on generated takes", "bench.accuracy"),
     ("Speed and memory", "bench.speed"),
     ("Joint-centre estimators against the papers", "bench.joints"),
+    ("Passive data: merge-ids", "bench.passive"),
 ]
 
 

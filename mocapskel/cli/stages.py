@@ -7,6 +7,7 @@ import click
 
 from .. import artifacts, pipeline
 from ..io.bvh import write_bvh
+from ..io.markers import write_markers
 from ..stages import export
 from .main import cli
 from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
@@ -31,17 +32,28 @@ def _make(stage: str):
     @read_options
     @cache_options
     @common
-    def cmd(input, output, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+    def cmd(input, output, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache, write_c3d=None):
         check_output(output, input, suffixes=(".npz",))
+        if write_c3d is not None:
+            check_output(write_c3d, input, output, suffixes=(".c3d",))
         params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
         run = pipeline.run_until(input, stage, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
         artifacts.save(run.artifact, output)
         log.info("wrote %s (%s artifact)", output, run.artifact.kind)
+        if write_c3d is not None:
+            write_markers(write_c3d, run.artifact)
+            log.info("wrote %s (%d merged labels)", write_c3d, run.artifact.n_markers)
 
     cmd.__doc__ = (
         f"{_HELP[stage]}\n\nINPUT is a take (.c3d, .trc) or the .npz artifact of an earlier stage;"
         f" the stages in between are run.\n\n\b\nExample:\n    mocapskel {stage} take.c3d -o {stage.replace('-', '_')}.npz"
     )
+    if stage == "merge-ids":
+        cmd.__doc__ += "\n    mocapskel merge-ids take.c3d -o merged.npz --write-c3d merged.c3d"
+        cmd = click.option(
+            "--write-c3d", "write_c3d", type=click.Path(), default=None, metavar="FILE.c3d",
+            help="Also write the take with merged labels (one per physical marker) as C3D.",
+        )(cmd)
     return cli.command(stage)(cmd)
 
 
