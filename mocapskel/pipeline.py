@@ -77,6 +77,8 @@ def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions()) -> tu
         raise InputError("no such file — check the path", str(path))
     if p.is_dir():
         raise InputError("is a folder, not a take — give a .c3d or .trc file", str(path))
+    if not p.is_file():  # a FIFO or a device: hashing it would block or never end
+        raise InputError("not a regular file — give a .c3d or .trc file", str(path))
     key = file_key(p, dataclasses.asdict(read))
     if p.suffix.lower() == ARTIFACT_SUFFIX:
         return artifacts.load(p), key

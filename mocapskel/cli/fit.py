@@ -7,7 +7,7 @@ import logging
 import click
 
 from .. import pipeline
-from ..io.atomic import atomic_open
+from ..io.atomic import AtomicOutputs, atomic_open
 from ..io.bvh import write_bvh
 from .main import cli
 from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
@@ -42,10 +42,11 @@ def write_report(path, report: dict) -> None:
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write the JSON report here.")
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
+@click.option("--html", "html_path", type=click.Path(), default=None, help="Also write the HTML report (plots, 3-D view) here; needs mocapskel[report].")
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, html_path, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -60,18 +61,29 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         check_output(skeleton_out, input, suffixes=(".skel",))
     if markers_out:
         check_output(markers_out, input, suffixes=(".c3d", ".trc"))
+    if html_path:
+        from ..html_report import require_matplotlib
+        from .report import HTML_SUFFIXES
+
+        check_output(html_path, input, suffixes=HTML_SUFFIXES)
+        require_matplotlib()
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     b = res.bvh
-    write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-    if report_path:
-        write_report(report_path, res.report)
-    if skeleton_out:
-        from ..io.skeleton import write_skeleton
+    with AtomicOutputs() as out:  # every output appears at the end, or none does
+        write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+        if report_path:
+            write_report(out.stage(report_path), res.report)
+        if skeleton_out:
+            from ..io.skeleton import write_skeleton
 
-        write_skeleton(skeleton_out, res.motion.skeleton, source=res.report["input"]["file"])
-    if markers_out:
-        write_markers_out(markers_out, res.motion, input, make_read(exclude, include))
+            write_skeleton(out.stage(skeleton_out), res.motion.skeleton, source=res.report["input"]["file"])
+        if markers_out:
+            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
+        if html_path:
+            from .report import write_html_report
+
+            write_html_report(out.stage(html_path), res)
     ik = res.report["ik"]
     rms = ik.get("marker_rms_mm")
     log.info(

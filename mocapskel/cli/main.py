@@ -8,7 +8,9 @@ tracebacks.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
+import threading
 import traceback
 
 import click
@@ -48,15 +50,37 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived. Raised from the signal handler, like KeyboardInterrupt for Ctrl-C,
+    so that temporary outputs are removed on the way out (exit code 143)."""
+
+
+class Interrupted(BaseException):
+    """Ctrl-C during a command: KeyboardInterrupt under another name, so that click does not
+    print its blank line before our one-line message (exit code 130)."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
 class MocapskelGroup(click.Group):
     """A click group whose ``main`` turns every error into one line and an exit code.
 
     Both the console script and click's CliRunner go through here.
     """
 
+    def invoke(self, ctx):  # noqa: D102
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            raise Interrupted() from None
+
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):  # noqa: D102
         _register()
         args = list(sys.argv[1:] if args is None else args)
+        main_thread = threading.current_thread() is threading.main_thread()
+        old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
         try:
             super().main(args=args, prog_name=prog_name or "mocapskel", standalone_mode=False, **extra)
         except click.exceptions.Exit as e:
@@ -71,14 +95,24 @@ class MocapskelGroup(click.Group):
             if _State.verbose:
                 traceback.print_exc()
             _fail(str(e), e.exit_code)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, Interrupted):
             _fail("interrupted — no output was written", 130)
+        except Terminated:
+            _fail("terminated — no output was written", 128 + signal.SIGTERM)
         except MemoryError:
             _fail("out of memory — try a shorter take or fewer markers", 1)
+        except OSError as e:  # the system refused a read or a write (disk full, permissions ...)
+            if _State.verbose:
+                traceback.print_exc()
+            where = f"{e.filename}: " if e.filename else ""
+            _fail(f"{where}{e.strerror or e} — check free space and permissions (-v shows where it happened)", 1)
         except Exception as e:  # anything unexpected
             if _State.verbose:
                 traceback.print_exc()
             _fail(f"unexpected {type(e).__name__}: {e} — run with -v for details and report it", 1)
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
         sys.exit(0)
 
 

@@ -25,7 +25,7 @@ def cache_options(f):
     f = click.option("--no-cache", is_flag=True, help="Neither read nor write the artifact cache.")(f)
     f = click.option(
         "--cache-dir",
-        type=click.Path(file_okay=False),
+        type=click.Path(),  # not file_okay=False: a cache folder that cannot be used means no cache and a warning
         default=None,
         help="Artifact cache folder [default: $XDG_CACHE_HOME/mocapskel or ~/.cache/mocapskel].",
     )(f)
@@ -89,7 +89,7 @@ def check_output(out: str, *inputs: str, suffixes: tuple[str, ...] | None = None
     if not parent.is_dir():
         raise UsageError(f"output folder {parent} does not exist — create it first")
     if not os.access(parent, os.W_OK):
-        raise UsageError(f"output folder {parent} is not writable")
+        raise UsageError(f"output folder {parent} is not writable — choose another folder or fix its permissions")
     if suffixes and p.suffix.lower() not in suffixes:
         raise UsageError(f"output {out} should end in {' or '.join(suffixes)}")
     return p

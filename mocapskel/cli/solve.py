@@ -6,6 +6,7 @@ import logging
 import click
 
 from .. import pipeline
+from ..io.atomic import AtomicOutputs
 from ..io.bvh import write_bvh
 from ..io.skeleton import read_skeleton
 from .fit import write_markers_out, write_report
@@ -44,11 +45,12 @@ def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out,
     params = pipeline.make_params(up=up, units=units)
     res = pipeline.solve(input, skel, params, read=make_read(exclude, include))
     b = res.bvh
-    write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-    if report_path:
-        write_report(report_path, res.report)
-    if markers_out:
-        write_markers_out(markers_out, res.motion, input, make_read(exclude, include))
+    with AtomicOutputs() as out:  # every output appears at the end, or none does
+        write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+        if report_path:
+            write_report(out.stage(report_path), res.report)
+        if markers_out:
+            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
     for w in res.report["warnings"]:
         log.warning("warning: %s", w)
     log.info("wrote %s: %d frames, marker rms %.2f mm", output, b.root_pos.shape[0], res.report["ik"]["marker_rms_mm"] or float("nan"))

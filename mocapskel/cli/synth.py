@@ -65,12 +65,12 @@ def synth_cmd(kind, output, truth_path, seed, frames, rate, motion, counts, link
     take = make(recipe)
     from dataclasses import replace
 
-    from ..io.atomic import atomic_path
+    from ..io.atomic import AtomicOutputs
     from ..io.markers import write_markers
 
     markers = replace(take.markers, source=out.name)
-    write_markers(out, markers)
-    with atomic_path(truth_out) as tmp:
-        with open(tmp, "wb") as f:
+    with AtomicOutputs() as staged:  # the take and its truth appear together, or neither does
+        write_markers(staged.stage(out), markers)
+        with open(staged.stage(truth_out), "wb") as f:
             take.truth.save(f)
     log.info("wrote %s (%d frames, %d labels) and %s", out, markers.n_frames, markers.n_markers, truth_out)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
+import signal
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,3 +48,61 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kw) -> Iterator[IO]:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     with atomic_open(path, "wb") as f:
         f.write(data)
+
+
+class AtomicOutputs:
+    """Several output files that appear together when a ``with`` block ends without error, or not at all.
+
+    ``stage(path)`` returns the path to write instead of ``path``: a file of the
+    same name (same suffix, for writers that check it) in a hidden folder
+    ``.<name>.*.part`` beside ``path``, so on the same file system. When the
+    block ends without error every staged file is renamed onto its target
+    (Ctrl-C and SIGTERM held back for those few renames); on any exception,
+    KeyboardInterrupt included, the staged files are removed and every target
+    keeps what it held before.
+
+    Example::
+
+        with AtomicOutputs() as out:
+            write_bvh(out.stage("take.bvh"), ...)
+            write_report(out.stage("take.json"), report)
+    """
+
+    def __init__(self) -> None:
+        self._staged: list[tuple[Path, Path]] = []
+
+    def __enter__(self) -> "AtomicOutputs":
+        return self
+
+    def stage(self, path: str | os.PathLike) -> Path:
+        target = Path(path)
+        folder = tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+        tmp = Path(folder) / target.name
+        self._staged.append((tmp, target))
+        return tmp
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        try:
+            if exc_type is None:
+                held = _hold_signals()
+                try:
+                    for tmp, target in self._staged:
+                        if tmp.exists():
+                            os.replace(tmp, target)
+                finally:
+                    _release_signals(held)
+        finally:
+            for tmp, _ in self._staged:
+                shutil.rmtree(tmp.parent, ignore_errors=True)
+        return False
+
+
+def _hold_signals():
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _release_signals(held) -> None:
+    if held is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)

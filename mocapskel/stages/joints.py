@@ -30,7 +30,7 @@ from ..solvers.rigid import kabsch
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 2
+VERSION = 3
 
 METHODS = ("auto", "jmv", "mtb", "sphere", "score")
 
@@ -40,6 +40,9 @@ class Params:
     method: str = "auto"
     alpha: float = 0.0
     """Kirk's distance penalty in the final fit (0: dropped, as the paper's discussion advises)."""
+    min_turn_deg: float = 5.0
+    """Joints whose segments turn less than this relative to each other (95th
+    percentile over frames) are reported as poorly determined."""
     hinge_ratio: float = 0.4
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints."""
@@ -128,6 +131,18 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 per_joint[e]["why"] = f"UGDK/MGDK sphere fit of the {'child' if side == 0 else 'parent'} markers in the {'parent' if side == 0 else 'child'} frame"
             else:
                 per_joint[e]["note"] = f"sphere fit not possible (no side with 3+ markers); {methods[e]} used"
+    if params.method in ("score", "auto"):
+        names = _segment_labels(seg)
+        for e, (a, b) in enumerate(edges):
+            if isinstance(poses[a], str) or isinstance(poses[b], str):
+                continue
+            turn = relative_turn_deg(poses[a][0], poses[b][0])
+            per_joint[e]["turn_deg"] = turn
+            if np.isfinite(turn) and turn < params.min_turn_deg:
+                warnings.append(
+                    f"joint {names[a]}–{names[b]}: centre poorly determined — the segments turn only {turn:.1f}° relative"
+                    " to each other; record a range-of-motion take that exercises this joint"
+                )
     residual = np.full(E, np.nan)
     for e, (a, b) in enumerate(edges):
         both = np.concatenate([groups[a], groups[b]], axis=1)
@@ -221,3 +236,31 @@ def sphere_centre(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, int | None]
         if fit.ok:
             return np.einsum("fij,j->fi", R, fit.centre) + t, side
     return np.full((A.shape[0], 3), np.nan), None
+
+
+def relative_turn_deg(R1: np.ndarray, R2: np.ndarray) -> float:
+    """How far two segments turn relative to each other (95th percentile over frames, degrees).
+
+    R1, R2 : (F, 3, 3) segment rotations (NaN where unknown). The relative
+    rotation of every frame is compared with its median over the take.
+    """
+    rel = np.einsum("fji,fjk->fik", R1, R2)  # R1^T R2
+    ok = np.isfinite(rel).all(axis=(1, 2))
+    if ok.sum() < 2:
+        return float("nan")
+    rel = rel[ok]
+    ref = rel[len(rel) // 2]
+    cos = (np.einsum("ji,fjk->fik", ref, rel).trace(axis1=1, axis2=2) - 1.0) / 2.0
+    ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    # the spread about the typical pose: distance of every frame to the frame nearest the median angle
+    med = rel[np.argmin(np.abs(ang - np.median(ang)))]
+    cos = (np.einsum("ji,fjk->fik", med, rel).trace(axis1=1, axis2=2) - 1.0) / 2.0
+    return float(np.percentile(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), 95))
+
+
+def _segment_labels(seg) -> list[str]:
+    """Short names for segments in messages (their markers' common prefix, as the rigid stage names them)."""
+    from .rigid import segment_names
+
+    mk = seg.markers
+    return segment_names([[mk.labels[i] for i in seg.members(s)] for s in range(seg.n_segments)])

@@ -179,6 +179,11 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         warnings.simplefilter("ignore", RuntimeWarning)
         pooled = np.nanmedian(np.stack(stds), axis=0)[np.ix_(iu, iu)]
     k = params.n_segments
+    if k is not None and k > iu.size:  # before the eigen-gap, which indexes k eigenvalues
+        raise DataError(
+            f"asked for {k} segments but only {iu.size} markers are seen often enough — ask for fewer segments",
+            markers.source or None,
+        )
     off = pooled[~np.eye(pooled.shape[0], dtype=bool)]
     size = _median_distance(markers.points[samplings[0]][:, iu])
     rigid_mm = min(params.rigid_mm, params.rigid_frac * size) if np.isfinite(size) and size > 0 else params.rigid_mm

@@ -1,0 +1,88 @@
+"""``mocapskel fit`` on every real take in ``../shared/realdata/`` (issue 6).
+
+Each take either gives a BVH (re-read: one frame per input frame, finite
+channels) or a documented error: exit 3 or 4 and one ``mocapskel: error:``
+line naming the file, no traceback, no output. A Python warning (numpy's
+"All-NaN slice" and the like) is a failure too: on the command line it prints
+two stray lines of source code to the user's terminal.
+
+The folder sits beside the repository and is not committed; when it is absent
+these tests are skipped and say so loudly. One test per file so that a failure
+names its take (about 1-8 s each, 60-90 s for the 40 takes on 2 cores).
+"""
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mocapskel.cli.main import cli
+from mocapskel.io.bvh import read_bvh
+from mocapskel.io.markers import read_markers
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+MISSING = f"REAL DATA NOT FOUND at {REALDATA} — the real-take fit tests did NOT run (see shared/realdata/README.md)"
+
+
+def _files() -> list[str]:
+    if not REALDATA.is_dir():
+        return []
+    return sorted(
+        str(p.relative_to(REALDATA)) for p in REALDATA.rglob("*") if p.is_file() and p.suffix.lower() in (".c3d", ".trc")
+    )
+
+
+FILES = _files()
+
+#: Takes where fit is known to emit a stray Python warning (a bug to fix). The rest of
+#: the test still runs on them; the test xfails on that warning alone, and fails once
+#: the warning is gone so that the entry is removed.
+STRAY_WARNING: dict[str, str] = {}  # rel path -> reason (clean.py's All-NaN warning on 7 takes: fixed in 5d83b9f)
+
+
+def test_realdata_folder_is_there() -> None:
+    if not FILES:
+        pytest.skip(MISSING)
+    assert len(FILES) >= 30
+
+
+@pytest.mark.parametrize("rel", FILES or ["<no real data>"])
+def test_fit_real_take_gives_bvh_or_a_documented_error(rel: str, tmp_path: Path) -> None:
+    if not FILES:
+        pytest.skip(MISSING)
+    src = REALDATA / rel
+    before = src.stat().st_mtime_ns, src.stat().st_size
+    out, rep = tmp_path / "take.bvh", tmp_path / "take.json"
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = CliRunner().invoke(cli, ["fit", str(src), "-o", str(out), "--report", str(rep), "--no-cache", "-q"])
+    seconds = time.perf_counter() - t0
+    assert (src.stat().st_mtime_ns, src.stat().st_size) == before, "the input was touched"
+    assert "Traceback" not in r.stderr
+    assert r.exit_code in (0, 3, 4), f"{rel}: exit {r.exit_code} after {seconds:.1f} s\n{r.stderr}"
+    if r.exit_code == 0:
+        skel, root_pos, local_rot, frame_time = read_bvh(out)
+        report = json.loads(rep.read_text())
+        frames = read_markers(src).n_frames
+        assert root_pos.shape[0] == local_rot.shape[0] == frames == report["input"]["frames"]
+        assert np.isfinite(root_pos).all() and np.isfinite(local_rot).all()
+        assert frame_time == pytest.approx(1.0 / report["input"]["rate_hz"])
+        assert len(skel.names) >= 2
+    else:
+        errors = [ln for ln in r.stderr.splitlines() if ln.startswith("mocapskel: error:")]
+        assert len(errors) == 1 and r.stderr.rstrip().endswith(errors[0]), r.stderr
+        assert f"{src.name}:" in errors[0] and " — " in errors[0], errors[0]
+        assert not out.exists() and not rep.exists()
+    assert not [p for p in tmp_path.iterdir() if ".part" in p.name], "temporary files left behind"
+    stray = sorted({f"{w.category.__name__}: {w.message} ({Path(w.filename).name}:{w.lineno})" for w in caught})
+    if rel in STRAY_WARNING:
+        assert stray, f"{rel} no longer warns: remove it from STRAY_WARNING"
+        if all("All-NaN slice" in w for w in stray):
+            pytest.xfail(STRAY_WARNING[rel])
+    assert not stray, f"{rel}: fit emitted Python warnings: {stray}"
