@@ -32,12 +32,13 @@ def main() -> None:
     ap.add_argument("--gaps", type=float, default=0.0)
     ap.add_argument("--mps", type=int, default=None, help="markers per segment (human)")
     ap.add_argument("--counts", default="4-3-3")
+    ap.add_argument("--link-length", type=float, default=300.0)
     ap.add_argument("--format", default="c3d")
     ap.add_argument("--joint-method", default="auto")
     a = ap.parse_args()
     rec = Recipe(kind=a.kind, seed=a.seed, frames=a.frames, noise_mm=a.noise, soft_tissue_mm=a.soft_tissue,
                  gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps,
-                 counts=tuple(int(c) for c in a.counts.split("-")))
+                 counts=tuple(int(c) for c in a.counts.split("-")), link_length=a.link_length)
     take = make(rec)
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / f"take.{a.format}"

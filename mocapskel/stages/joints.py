@@ -14,7 +14,8 @@ Methods (``Params.method``):
   (realistic noise and soft tissue, 10 seeds): SCoRE when both segments carry
   3+ markers; the sphere fit when one of them carries a single marker; JMV
   otherwise (2-marker segments), joint by joint — propagating MTB through a
-  JMV-solved joint amplifies its error under noise.
+  JMV-solved joint amplifies its error under noise — unless Hang's framework
+  reaches a lower joint cost for that joint (as it does on exact data).
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from ..solvers.rigid import kabsch
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 3
+VERSION = 4
 
 METHODS = ("auto", "jmv", "mtb", "sphere", "score")
 
@@ -44,6 +45,9 @@ class Params:
     """Joints whose segments turn less than this relative to each other (95th
     percentile over frames) are reported as poorly determined."""
     hinge_ratio: float = 0.4
+    hinge_min_sigma_mm: float = 0.1
+    """...and only when SCoRE's standard error along the axis exceeds this (noise-free
+    data fix even a near-hinge exactly)."""
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints."""
 
@@ -71,7 +75,10 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             if isinstance(poses[a], str) or isinstance(poses[b], str):
                 continue
             (R1, t1, ref1), (R2, t2, ref2) = poses[a], poses[b]
-            fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=params.hinge_ratio)
+            fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=0.0)
+            if fit.ok and fit.axis_ratio < params.hinge_ratio and along_axis_sigma(fit) > params.hinge_min_sigma_mm:
+                # hinge-like and the data leave the centre loose along the axis: place it on the axis
+                fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=1.0)
             if not fit.ok:
                 continue
             if fit.hinge:
@@ -84,6 +91,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             )
             per_joint[e]["hinge"] = bool(fit.hinge)
             done[e] = True
+    tree = None
     if params.method == "auto":  # the rules measured in bench/joints.py (see the module docstring)
         for e, (a, b) in enumerate(edges):
             if done[e]:
@@ -100,6 +108,17 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
+            # Hang's framework may reach a lower joint cost (exact data): then it wins
+            if tree is None:
+                tree = solve_tree(groups, edges, alpha=params.alpha)
+            both = np.concatenate([groups[a], groups[b]], axis=1)
+            if np.isfinite(tree.centres[:, e]).any() and np.isfinite(fit.centre).any():
+                q_tree = joint_cost(tree.centres[:, e], both, alpha=0.0)
+                q_jmv = joint_cost(fit.centre, both, alpha=0.0)
+                if q_tree < q_jmv:
+                    centres[:, e], methods[e] = tree.centres[:, e], tree.method[e]
+                    per_joint[e]["why"] = _why(tree.method[e], tree.category, edges[e]) + "; lower joint cost than JMV"
+                    per_joint[e].pop("note", None)
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
             fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
@@ -264,3 +283,11 @@ def _segment_labels(seg) -> list[str]:
 
     mk = seg.markers
     return segment_names([[mk.labels[i] for i in seg.members(s)] for s in range(seg.n_segments)])
+
+
+def along_axis_sigma(fit) -> float:
+    """Standard error of a SCoRE centre along its weakest direction (mm): rms / (s_min sqrt(n))."""
+    s_min = float(fit.singular_values[-1])
+    if not (s_min > 0) or fit.n_frames < 1:
+        return float("inf")
+    return float(fit.rms) / (s_min * np.sqrt(fit.n_frames))
