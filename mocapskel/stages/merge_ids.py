@@ -309,13 +309,17 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     F, L = markers.points.shape[:2]
     vis0 = np.isfinite(markers.points).all(axis=2)
     physical = int(vis0.sum(axis=1).max()) if vis0.size else 0
-    if not params.enabled or L == 0 or F == 0:
+    if not params.enabled or L == 0 or F == 0 or physical == L:
+        # physical == L: some frame shows every label at once, so no two labels can be
+        # one marker and no label is a ghost (it is seen with all the others); nothing to merge
         info["merge_ids"] = {
             "version": VERSION,
             "enabled": bool(params.enabled),
             "labels_in": L,
             "labels_out": L,
             "physical_markers": physical,
+            "looks_relabelled": False,
+            "pieces": [],
             "merged": {lab: [lab] for lab in markers.labels},
             "dropped": {"ghost_labels": [], "ghost_samples": 0, "jump_samples": 0, "edge_samples": 0,
                         "emptied_labels": []},
