@@ -13,6 +13,7 @@ BENCHES = [
     ("Speed and memory", "bench.speed"),
     ("Joint-centre estimators against the papers", "bench.joints"),
     ("Passive data: merge-ids", "bench.passive"),
+    ("Batches: local workers", "bench.batch"),
 ]
 
 
