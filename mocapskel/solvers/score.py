@@ -382,6 +382,15 @@ def _hinge_solution(sy: _System, markers1: np.ndarray, markers2: np.ndarray) -> 
 # public
 
 
+def _hinge_fit(sy: _System, m1: np.ndarray, m2: np.ndarray) -> ScoreFit:
+    """The hinge result: the centre on the axis, placed by the markers (or the failure)."""
+    sol = _hinge_solution(sy, m1, m2)
+    if isinstance(sol, str):
+        return _finish(sy, _truncated(sy, 1), True, sy.vec[:, 0], False, sol, m1, m2)
+    x, v = sol
+    return _finish(sy, x, True, v, True, "", m1, m2)
+
+
 def score(
     R1: np.ndarray,
     t1: np.ndarray,
@@ -443,11 +452,7 @@ def score(
             "undetermined along the axis; pass markers1 and markers2 to place it",
             m1, m2,
         )
-    sol = _hinge_solution(sy, m1, m2)
-    if isinstance(sol, str):
-        return _finish(sy, _truncated(sy, 1), True, sy.vec[:, 0], False, sol, m1, m2)
-    x, v = sol
-    return _finish(sy, x, True, v, True, "", m1, m2)
+    return _hinge_fit(sy, m1, m2)
 
 
 def score_hinge(
@@ -491,11 +496,7 @@ def score_hinge(
     why = _degenerate(sy)
     if why:
         return _nan_score(F, why, sy.sv, sy.n, hinge=True, markers1=m1, markers2=m2)
-    sol = _hinge_solution(sy, m1, m2)
-    if isinstance(sol, str):
-        return _finish(sy, _truncated(sy, 1), True, sy.vec[:, 0], False, sol, m1, m2)
-    x, v = sol
-    return _finish(sy, x, True, v, True, "", m1, m2)
+    return _hinge_fit(sy, m1, m2)
 
 
 def sara(
