@@ -423,11 +423,6 @@ def test_more_segments_than_markers(tmp_path: Path, link_trc: Path, segments: in
     assert_nothing_written(tmp_path, tmp_path / "o.bvh")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 6, for the lead (mocapskel/stages/rigid.py:101): 'rest frame 5000 is outside the take's 600 frames' "
-    "does not say what to do (e.g. '— choose a frame from 0 to 599')",
-)
 def test_rest_frame_outside_the_take(tmp_path: Path, link_trc: Path) -> None:
     r = invoke("fit", link_trc, "-o", tmp_path / "o.bvh", "--no-cache", "--rest-frame", 5000)
     assert_nothing_written(tmp_path, tmp_path / "o.bvh")

@@ -98,7 +98,7 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     else:
         rest = int(params.rest_frame)
         if not 0 <= rest < F:
-            raise DataError(f"rest frame {rest} is outside the take's {F} frames", mk.source or None)
+            raise DataError(f"rest frame {rest} is outside the take's {F} frames — choose a frame from 0 to {F - 1}", mk.source or None)
 
     use = np.unique(np.concatenate([np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int), [rest]]))
     rest_i = int(np.searchsorted(use, rest))
