@@ -640,3 +640,17 @@ def test_a_joint_that_is_never_exercised_is_warned_about(tmp_path: Path) -> None
     warned = [w for w in rep["warnings"] if "poorly determined" in w]
     assert len(warned) == 1 and name["B"] in warned[0] and name["C"] in warned[0], rep["warnings"]
     assert "poorly determined" in r.stderr
+
+
+def test_absurd_coordinates_are_refused(tmp_path: Path) -> None:
+    """Points far beyond any capture volume (a units mix-up or garbage) are bad input, not a crash."""
+    from mocapskel.synth.presets import Recipe, make
+
+    take = make(Recipe(kind="linkage", frames=600, noise_mm=0.5, seed=3))
+    from dataclasses import replace as _replace
+
+    f = tmp_path / "huge.trc"
+    write_markers(f, _replace(take.markers, points=take.markers.points * 1e12))
+    r = invoke("fit", f, "-o", tmp_path / "o.bvh", "--no-cache")
+    assert_nothing_written(tmp_path, tmp_path / "o.bvh")
+    assert_one_line_error(r, 3, "beyond any capture volume", name=f.name)

@@ -33,6 +33,9 @@ __all__ = [
     "write_markers",
 ]
 
+
+#: Coordinates beyond this (mm, 10 km) cannot come from a capture volume: the take is refused.
+MAX_COORDINATE_MM = 1e7
 log = logging.getLogger(__name__)
 
 #: Labels of points that are computed by the capture software rather than seen
@@ -370,6 +373,13 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
     if not seen_any.any():
         raise InputError(
             f"no marker data: every coordinate of the {M} markers is missing — export the take again with its trajectories",
+            spath,
+        )
+    biggest = float(np.abs(pts[finite]).max())
+    if biggest > MAX_COORDINATE_MM:
+        raise InputError(
+            f"coordinates up to {biggest:.3g} mm — beyond any capture volume ({MAX_COORDINATE_MM:g} mm);"
+            " check the file's units (POINT:UNITS / Units) or export it again",
             spath,
         )
     excluded = [s for s, k in zip(lab.final, keep) if not k]
