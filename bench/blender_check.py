@@ -1,4 +1,4 @@
-"""Does Blender put every bone where our forward kinematics does? (issue 5)
+"""Does Blender put every bone where our forward kinematics does?
 
     python -m bench.blender_check                      # sample_data/human_rom.c3d, every frame
     python -m bench.blender_check --frames 9           # 9 evenly spaced frames (and frame 1)
