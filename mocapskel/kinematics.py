@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 
 from .artifacts import Markers, Motion
+from .io.bvh import depth_first_order
 
 
 def segment_origins(motion: Motion) -> np.ndarray:
@@ -14,23 +15,13 @@ def segment_origins(motion: Motion) -> np.ndarray:
     F, S = motion.rot.shape[:2]
     pos = np.full((F, S, 3), np.nan)
     off = sk.offset
-    order = _parents_first(sk.parent)
-    for s in order:
+    for s in depth_first_order(sk.parent):  # parents before children
         p = sk.parent[s]
         if p < 0:
             pos[:, s] = motion.root_pos
         else:
             pos[:, s] = pos[:, p] + np.einsum("fij,j->fi", motion.rot[:, p], off[s])
     return pos
-
-
-def _parents_first(parent: np.ndarray) -> list[int]:
-    order, todo = [], [int(r) for r in np.flatnonzero(parent < 0)]
-    while todo:
-        s = todo.pop(0)
-        order.append(s)
-        todo.extend(int(c) for c in np.flatnonzero(parent == s))
-    return order
 
 
 def joint_marker_names(motion: Motion) -> list[str]:

@@ -164,21 +164,23 @@ def depth_first_order(parent: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     parent : (S,) int array_like
-        -1 for the root (joint 0), parents before children.
+        -1 for the root(s); any numbering (parents need not come first).
 
     Returns
     -------
     order : (S,) int ndarray
-        Joint indices depth first from the root, children in index order.
-        It is ``arange(S)`` when the skeleton is already in that order, as
-        every skeleton :func:`read_bvh` returns is.
+        Joint indices depth first from the root, children in index order, so
+        every parent comes before its children. It is ``arange(S)`` when the
+        skeleton is already in that order, as every skeleton :func:`read_bvh`
+        returns is.
     """
     parent = np.asarray(parent, dtype=np.int64)
     children: list[list[int]] = [[] for _ in range(len(parent))]
-    for s in range(1, len(parent)):
-        children[parent[s]].append(s)
+    for s in range(len(parent)):
+        if parent[s] >= 0:
+            children[parent[s]].append(s)
     out: list[int] = []
-    stack = [0]
+    stack = [int(r) for r in np.flatnonzero(parent < 0)[::-1]]
     while stack:
         s = stack.pop()
         out.append(s)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..io.bvh import BvhSkeleton, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..io.bvh import BvhSkeleton, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
 
 VERSION = 2
 
@@ -47,7 +47,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     if params.units not in UNITS:
         raise ValueError(f"units must be one of {UNITS}")
     sk = motion.skeleton
-    perm = depth_first(sk.parent)
+    perm = depth_first_order(sk.parent)
     inv = np.empty_like(perm)
     inv[perm] = np.arange(perm.size)
     par = np.where(sk.parent[perm] >= 0, inv[np.maximum(sk.parent[perm], 0)], -1)
@@ -64,14 +64,3 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
     return BvhMotion(bskel, lab_to_bvh(motion.root_pos, params.up, params.units), local, 1.0 / rate)
 
-
-def depth_first(parent: np.ndarray) -> np.ndarray:
-    """Segment indices depth first from the root (any numbering; parents come before children)."""
-    parent = np.asarray(parent)
-    order: list[int] = []
-    stack = [int(r) for r in np.flatnonzero(parent < 0)[::-1]]
-    while stack:
-        s = stack.pop()
-        order.append(s)
-        stack.extend(int(c) for c in np.flatnonzero(parent == s)[::-1])
-    return np.array(order, dtype=int)

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
+from ..io.bvh import depth_first_order, sanitize_names
 from ..solvers.rigid import procrustes_shape
 
 VERSION = 2
@@ -63,8 +64,6 @@ def segment_names(labels_per_segment: list[list[str]]) -> list[str]:
         if len(pre) < 2 or re.fullmatch(r"[A-Za-z]?\d*", pre) or re.fullmatch(r"M\d*|Marker|marker|U|Unlabeled", pre):
             pre = f"seg{i:02d}"
         names.append(pre)
-    from ..io.bvh import sanitize_names
-
     return list(sanitize_names(names))
 
 
@@ -91,7 +90,7 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     for e, (a, b) in enumerate(edges):
         parent[b] = a
         parent_edge[b] = e
-    order = _topological(parent, topo.root)
+    order = depth_first_order(parent)  # parents before children
 
     if params.rest_frame is None:
         rest = choose_rest_frame(pts, joints.centres, seg.group, S, params.rest_search)
@@ -169,15 +168,6 @@ def _shape_origin(s, parent, parent_edge, joint_in, edges) -> np.ndarray:
     if parent[s] < 0:
         return np.mean([joint_in[(s, e)] for e in np.flatnonzero(edges[:, 0] == s)], axis=0)
     return joint_in[(s, parent_edge[s])]
-
-
-def _topological(parent: np.ndarray, root: int) -> list[int]:
-    order, todo = [], [root]
-    while todo:
-        s = todo.pop(0)
-        order.append(s)
-        todo.extend(np.flatnonzero(parent == s).tolist())
-    return order
 
 
 def _end_site(local: np.ndarray) -> np.ndarray:
