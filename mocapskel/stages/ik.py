@@ -56,7 +56,7 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
             p = np.einsum("fij,j->fi", R, skel.origin[s]) + t
             if ok.any():
                 fr = np.flatnonzero(ok)
-                root_pos = np.stack([np.interp(np.arange(F), fr, p[fr, i]) for i in range(3)], axis=1)
+                root_pos = _interp_frames(p, fr)
     if not np.isfinite(root_pos).all():
         # fall back to the mean of the root's markers, offset as at rest
         mids = np.flatnonzero(skel.marker_segment == root)
@@ -66,8 +66,14 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
         fr = np.flatnonzero(np.isfinite(root_pos).all(1))
         if not fr.size:
             raise DataError("the root segment is never seen — cannot place the skeleton", None)
-        root_pos = np.stack([np.interp(np.arange(F), fr, root_pos[fr, i]) for i in range(3)], axis=1)
+        root_pos = _interp_frames(root_pos, fr)
     return rot, root_pos
+
+
+def _interp_frames(x: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """x (F, 3) known at ``frames``: linear in between, held at the ends."""
+    F = x.shape[0]
+    return np.stack([np.interp(np.arange(F), frames, x[frames, i]) for i in range(3)], axis=1)
 
 
 def _edges(skel: Skeleton) -> np.ndarray:
