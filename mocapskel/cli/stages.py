@@ -6,6 +6,7 @@ import logging
 import click
 
 from .. import artifacts, pipeline
+from ..io.atomic import AtomicOutputs
 from ..io.bvh import write_bvh
 from ..io.markers import write_markers
 from ..stages import export
@@ -38,10 +39,12 @@ def _make(stage: str):
             check_output(write_c3d, input, output, suffixes=(".c3d",))
         params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
         run = pipeline.run_until(input, stage, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
-        artifacts.save(run.artifact, output)
+        with AtomicOutputs() as out:  # the artifact and the C3D appear together, or neither does
+            artifacts.save(run.artifact, out.stage(output))
+            if write_c3d is not None:
+                write_markers(out.stage(write_c3d), run.artifact)
         log.info("wrote %s (%s artifact)", output, run.artifact.kind)
         if write_c3d is not None:
-            write_markers(write_c3d, run.artifact)
             log.info("wrote %s (%d merged labels)", write_c3d, run.artifact.n_markers)
 
     cmd.__doc__ = (
