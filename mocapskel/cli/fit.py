@@ -9,7 +9,7 @@ import click
 from .. import pipeline
 from ..io.atomic import AtomicOutputs, atomic_open
 from ..io.bvh import write_bvh
-from .main import cli
+from .main import cli, say_warnings
 from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
 
 log = logging.getLogger("mocapskel")
@@ -91,5 +91,4 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         output, len(b.skeleton.names), b.root_pos.shape[0],
         f"{rms:.2f}" if rms is not None else "n/a", res.run.seconds.get("total", 0.0),
     )
-    for w in res.report.get("warnings", []):
-        log.warning("warning: %s", w)
+    say_warnings(res.report.get("warnings", []))

@@ -22,10 +22,12 @@ log = logging.getLogger("mocapskel")
 
 class _State:
     verbose = 0
+    said: list[str] = []  # messages already written to stderr in this run
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
     _State.verbose = verbose
+    _State.said = []
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 0 else logging.INFO)
     log.setLevel(level)
     if not any(isinstance(h, _StderrHandler) for h in log.handlers):
@@ -48,6 +50,17 @@ class _StderrHandler(logging.StreamHandler):
     @stream.setter
     def stream(self, value) -> None:
         pass
+
+    def emit(self, record: logging.LogRecord) -> None:
+        _State.said.append(record.getMessage())
+        super().emit(record)
+
+
+def say_warnings(warnings: list[str]) -> None:
+    """Log a run's warnings at its end, leaving out those already shown when they happened."""
+    for w in warnings:
+        if not any(w in m for m in _State.said):
+            log.warning("warning: %s", w)
 
 
 class Terminated(BaseException):

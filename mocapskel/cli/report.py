@@ -8,7 +8,7 @@ import click
 
 from .. import pipeline
 from ..io.atomic import atomic_write_bytes
-from .main import cli
+from .main import cli, say_warnings
 from .options import cache_options, check_output, common, fit_options, make_cache, make_read, read_options
 
 log = logging.getLogger("mocapskel")
@@ -70,5 +70,4 @@ def report_cmd(input, output, segments, joint_method, rest_frame, exclude, inclu
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     size = write_html_report(output, res)
     log.info("wrote %s (HTML report, %.1f MB)", output, size / 1e6)
-    for w in res.report.get("warnings", []):
-        log.warning("warning: %s", w)
+    say_warnings(res.report.get("warnings", []))

@@ -10,7 +10,7 @@ from ..io.atomic import AtomicOutputs
 from ..io.bvh import write_bvh
 from ..io.skeleton import read_skeleton
 from .fit import write_markers_out, write_report
-from .main import cli
+from .main import cli, say_warnings
 from .options import bvh_options, check_output, common, make_read, read_options
 
 log = logging.getLogger("mocapskel")
@@ -51,6 +51,5 @@ def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out,
             write_report(out.stage(report_path), res.report)
         if markers_out:
             write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
-    for w in res.report["warnings"]:
-        log.warning("warning: %s", w)
+    say_warnings(res.report.get("warnings", []))
     log.info("wrote %s: %d frames, marker rms %.2f mm", output, b.root_pos.shape[0], res.report["ik"]["marker_rms_mm"] or float("nan"))
