@@ -138,6 +138,9 @@ class Skeleton:
     noise        : (S,) rms residual of the rigid fit per segment (mm).
     rest_frame   : the frame whose pose is the rest pose.
     labels       : M marker labels (so that a skeleton can solve other takes).
+    pose_frames, pose_rot, pose_root : the take's poses at the frames the
+                   skeleton was calibrated on ((K,), (K, S, 3, 3), (K, 3)), or
+                   None; IK starts from them where markers alone cannot.
     """
 
     names: tuple[str, ...]
@@ -152,6 +155,9 @@ class Skeleton:
     labels: tuple[str, ...]
     joints: Joints | None = None
     info: dict = field(default_factory=dict)
+    pose_frames: np.ndarray | None = None
+    pose_rot: np.ndarray | None = None
+    pose_root: np.ndarray | None = None
     kind: ClassVar[str] = "skeleton"
 
     @property

@@ -78,6 +78,8 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
         for s, p in enumerate(skel.parent.tolist())
     ]
     rep["rest_frame"] = int(skel.rest_frame)
+    ref = skel.info.get("refined")
+    rep["refinement"] = {k: (_f(v) if isinstance(v, float) else v) for k, v in ref.items()} if ref else None
     rep["ik"] = {
         "marker_rms_mm": _f(motion.info.get("rms_mm")),
         "marker_rms_mm_per_segment": {k: _f(v) for k, v in motion.info.get("rms_mm_per_segment", {}).items()},

@@ -9,16 +9,17 @@ is the subject as seen at a reference frame, so offsets are the real skeleton.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
 from ..io.bvh import depth_first_order, sanitize_names
+from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 2
+VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,10 @@ class Params:
     max_frames: int = 600
     """Frames used to fit the shapes (spread over the take, the rest frame among them);
     more add nothing measurable to constant offsets and cost time."""
+    refine_frames: int = 300
+    """Frames (the best-seen of equal stretches of the take) on which the whole
+    skeleton and its poses are then refined together; 0: no refinement."""
+    refine_iterations: int = 60
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -136,31 +141,61 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             o_shape = joint_in[(s, e)]
         mids, mshape = shapes[s]
         marker_local[mids] = mshape - o_shape
-        kids = np.flatnonzero(edges[:, 0] == s)
-        if parent[s] < 0 and kids.size == 2:  # a root between two joints: the joint-to-joint length
-            bone_length[s] = float(np.linalg.norm(joint_in[(s, kids[0])] - joint_in[(s, kids[1])]))
-        elif kids.size and parent[s] >= 0:
-            bone_length[s] = float(np.mean([np.linalg.norm(joint_in[(s, e)] - o_shape) for e in kids]))
-        if kids.size == 0:
-            end_site[s] = _end_site(marker_local[mids])
-            bone_length[s] = float(np.linalg.norm(end_site[s]))
 
     names = segment_names([[mk.labels[i] for i in seg.members(s)] for s in range(S)])
     info = {"version": VERSION, "rest_frame": rest, "noise_mm": {names[s]: noise[s] for s in range(S)}}
-    return Skeleton(
-        names=tuple(names),
-        parent=parent,
-        origin=origin,
-        marker_segment=seg.group.copy(),
-        marker_local=marker_local,
-        end_site=end_site,
-        bone_length=bone_length,
-        noise=noise,
-        rest_frame=rest,
-        labels=mk.labels,
-        joints=joints,
-        info=info,
+    skel = Skeleton(
+        names=tuple(names), parent=parent, origin=origin, marker_segment=seg.group.copy(),
+        marker_local=marker_local, end_site=end_site, bone_length=bone_length, noise=noise,
+        rest_frame=rest, labels=mk.labels, joints=joints, info=info,
     )
+    if params.refine_frames > 0:
+        skel = refine(skel, params)
+    return _with_lengths(skel)
+
+
+def refine(skel: Skeleton, params: Params) -> Skeleton:
+    """The whole skeleton and its poses refined together on a subsample of frames.
+
+    See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
+    skeleton from the per-segment fits. The refined skeleton keeps the poses
+    of those frames (IK starts from them where markers alone cannot).
+    """
+    from .ik import _centres_by_edges, solve
+
+    pts = skel.joints.topology.segments.markers.points
+    vis = np.isfinite(pts).all(-1)
+    use = pick_frames(vis, params.refine_frames, must=skel.rest_frame)
+    if use.size < 10:
+        return skel
+    ref = int(np.searchsorted(use, skel.rest_frame))
+    centres = _centres_by_edges(skel, skel.joints.centres)
+    start = solve(skel, pts[use], centres[use])
+    res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
+                          start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations)
+    info = dict(skel.info)
+    info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
+                       "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1]}
+    return replace(skel, origin=res.origin, marker_local=res.marker_local, info=info,
+                   pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
+
+
+def _with_lengths(skel: Skeleton) -> Skeleton:
+    """Bone lengths and End Sites from the skeleton's offsets."""
+    S = len(skel.names)
+    origin, parent = skel.origin, skel.parent
+    end_site = np.zeros((S, 3))
+    bone_length = np.full(S, np.nan)
+    for s in range(S):
+        kids = np.flatnonzero(parent == s)
+        if parent[s] < 0 and kids.size == 2:  # a root between two joints: the joint-to-joint length
+            bone_length[s] = float(np.linalg.norm(origin[kids[0]] - origin[kids[1]]))
+        elif kids.size and parent[s] >= 0:
+            bone_length[s] = float(np.mean(np.linalg.norm(origin[kids] - origin[s], axis=1)))
+        if kids.size == 0:
+            end_site[s] = _end_site(skel.marker_local[skel.marker_segment == s])
+            bone_length[s] = float(np.linalg.norm(end_site[s]))
+    return replace(skel, end_site=end_site, bone_length=bone_length)
 
 
 def _shape_origin(s, parent, parent_edge, joint_in, edges) -> np.ndarray:

@@ -1,0 +1,378 @@
+"""Skeleton calibration: every constant offset and every pose, fitted together.
+
+The joints stage places each joint from the two segments it links, and the
+rigid stage makes each segment's shape from its own markers and joints. When a
+segment carries few markers (two, or one), both steps see too little: a joint
+between two 2-marker segments is pinned only by four distances per frame. The
+whole skeleton sees much more — a segment's two markers, its parent joint and
+its child joints must all stay rigid together, frame after frame — so the
+skeleton is refined here as one least-squares problem over a subsample of
+frames (bundle adjustment)::
+
+    minimise  sum_f sum_m w_fm |x_m(p_f, R_f; d, l) - y_fm|^2
+
+over the per-frame root positions ``p_f`` and global segment rotations
+``R_f`` (the model of :mod:`mocapskel.solvers.ik`) and the constant bone
+offsets ``d_c`` (child ``c``'s joint relative to its parent's origin, in the
+parent's rest frame) and marker offsets ``l_m``. Given the rotations the
+marker positions are linear in ``p``, ``d`` and ``l``; the problem is solved
+by Levenberg–Marquardt, the per-frame pose blocks eliminated frame by frame
+(Schur complement), so an iteration costs O(F · (3S)^2 · (3S + G)) for G
+constant unknowns, with no Python loop over frames.
+
+The gauge (each segment's local frame, and where the root's origin sits) is
+fixed afterwards: every segment's rotation is the identity at the reference
+frame, and the root's origin is the mean of its children's joints, as the
+rigid stage defines them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io.bvh import depth_first_order
+
+import os
+_TRACE = bool(os.environ.get("CAL_TRACE"))
+__all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Refined skeleton offsets and the poses of the frames used.
+
+    origin : (S, 3) rest-pose segment origins (the root's kept as given)
+    marker_local : (M, 3) marker offsets from their segment's origin (unused markers unchanged)
+    rot : (F, S, 3, 3) global segment rotations, the identity at the reference frame
+    root_pos : (F, 3) root origin per frame
+    rms : (2,) marker rms (mm) before and after
+    n_iter : iterations run
+    """
+
+    origin: np.ndarray
+    marker_local: np.ndarray
+    rot: np.ndarray
+    root_pos: np.ndarray
+    rms: tuple[float, float]
+    n_iter: int
+
+
+def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
+    """``n`` frames spread over the take, each the best-seen of its stretch.
+
+    visible : (F, M) bool. The take is cut into ``n`` equal stretches and the
+    frame seeing the most markers is taken from each (the first on ties);
+    ``must`` is added if given. Sorted, unique.
+    """
+    F = visible.shape[0]
+    n = max(1, min(n, F))
+    edges = np.linspace(0, F, n + 1).round().astype(int)
+    count = visible.sum(1)
+    starts = edges[:-1]
+    # argmax within each stretch: reduceat gives the maxima, then the first frame reaching it
+    mx = np.maximum.reduceat(count, starts)
+    stretch = np.repeat(np.arange(n), np.diff(edges))
+    hit = count == mx[stretch]
+    first = np.full(n, -1)
+    idx = np.flatnonzero(hit)
+    first[stretch[idx][::-1]] = idx[::-1]
+    out = first[first >= 0]
+    if must is not None:
+        out = np.append(out, int(must))
+    return np.unique(out)
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    K = np.zeros(v.shape + (3,))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
+
+
+def _exp(rv: np.ndarray) -> np.ndarray:
+    th2 = np.einsum("...i,...i->...", rv, rv)
+    small = th2 < 1e-10
+    th = np.sqrt(np.where(small, 1.0, th2))
+    a = np.where(small, 1 - th2 / 6, np.sin(th) / th)
+    b = np.where(small, 0.5 - th2 / 24, (1 - np.cos(th)) / (th * th))
+    K = _hat(rv)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+class _Problem:
+    def __init__(self, parent, seg, observed):
+        S = len(parent)
+        self.S = S
+        self.parent = np.asarray(parent)
+        self.order = [int(s) for s in depth_first_order(self.parent)]
+        self.root = int(np.flatnonzero(self.parent < 0)[0])
+        path = {}
+        for s in self.order:
+            path[s] = ([] if self.parent[s] < 0 else path[int(self.parent[s])]) + [s]
+        self.path = path
+        vis = np.isfinite(observed).all(-1)
+        self.used = np.flatnonzero((np.asarray(seg) >= 0) & vis.any(0))
+        self.seg = np.asarray(seg)
+        self.y = np.where(vis[..., None], observed, 0.0)
+        self.w = vis.astype(float)
+        self.nf = 3 + 3 * S
+        kids = [s for s in range(S) if self.parent[s] >= 0]
+        self.gi = {c: 3 * i for i, c in enumerate(kids)}
+        base = 3 * len(kids)
+        self.gl = {int(m): base + 3 * i for i, m in enumerate(self.used)}
+        self.ng = base + 3 * len(self.used)
+        self.kids = kids
+
+    def fk(self, p, R, d, l):
+        F = p.shape[0]
+        P = np.empty((F, self.S, 3))
+        G = np.zeros((F, self.S, 3))
+        for s in self.order:
+            if self.parent[s] < 0:
+                P[:, s] = p
+            else:
+                G[:, s] = R[:, self.parent[s]] @ d[s]
+                P[:, s] = P[:, self.parent[s]] + G[:, s]
+        t = self.seg[self.used]
+        x = P[:, t] + np.einsum("fmij,mj->fmi", R[:, t], l[self.used])
+        return P, G, x
+
+    def residual(self, p, R, d, l):
+        _, _, x = self.fk(p, R, d, l)
+        return (x - self.y[:, self.used]) * self.w[:, self.used, None]
+
+    def cost(self, p, R, d, l) -> float:
+        r = self.residual(p, R, d, l)
+        return float(np.einsum("fmi,fmi->", r, r))
+
+    def jacobian(self, sl, p, R, d, l):
+        """(n, 3U, nf + ng) Jacobian and (n, 3U) residual for frames ``sl``."""
+        p, R = p[sl], R[sl]
+        P, G, x = self.fk(p, R, d, l)
+        n = p.shape[0]
+        U = self.used.size
+        J = np.zeros((n, 3 * U, self.nf + self.ng))
+        nf = self.nf
+        eye = np.eye(3)
+        for i, m in enumerate(self.used):
+            t = int(self.seg[m])
+            rows = slice(3 * i, 3 * i + 3)
+            w = self.w[sl, m][:, None, None]
+            J[:, rows, 0:3] = eye * w
+            pth = self.path[t]
+            for k, s in enumerate(pth):
+                u = R[:, t] @ l[m] if s == t else G[:, pth[k + 1]]
+                J[:, rows, 3 + 3 * s : 6 + 3 * s] = -_hat(u) * w
+            for c in pth[1:]:
+                J[:, rows, nf + self.gi[c] : nf + self.gi[c] + 3] = R[:, self.parent[c]] * w
+            J[:, rows, nf + self.gl[int(m)] : nf + self.gl[int(m)] + 3] = R[:, t] * w
+        r = ((x - self.y[sl][:, self.used]) * self.w[sl][:, self.used, None]).reshape(n, -1)
+        return J, r
+
+
+def refine_skeleton(
+    parent: np.ndarray,
+    origin: np.ndarray,
+    marker_segment: np.ndarray,
+    marker_local: np.ndarray,
+    observed: np.ndarray,
+    rot: np.ndarray,
+    root_pos: np.ndarray,
+    *,
+    ref_frame: int = 0,
+    iterations: int = 30,
+    tol: float = 1e-6,
+    chunk: int = 128,
+) -> CalibrationResult:
+    """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
+
+    parent, origin, marker_segment, marker_local : the skeleton (as :func:`~mocapskel.solvers.ik.solve_ik`).
+    observed : (F, M, 3) markers (NaN unseen) on a subsample of frames (a few hundred).
+    rot, root_pos : (F, S, 3, 3), (F, 3) the starting poses (e.g. IK with the skeleton).
+    ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.
+    iterations, tol : Levenberg–Marquardt limits; stops when the cost falls by less than ``tol`` (relative).
+    """
+    parent = np.asarray(parent)
+    S = len(parent)
+    F = observed.shape[0]
+    pr = _Problem(parent, np.asarray(marker_segment), observed)
+    p = np.array(root_pos, dtype=float)
+    R = np.array(rot, dtype=float)
+    d = np.zeros((S, 3))
+    for c in pr.kids:
+        d[c] = origin[c] - origin[parent[c]]
+    l = np.array(marker_local, dtype=float)
+    nf, ng = pr.nf, pr.ng
+    W = max(pr.w.sum(), 1.0)
+    c0 = cost = pr.cost(p, R, d, l)
+    lam = 1e-4
+    # gauge: the root's origin is fixed in the root by one of its joints (or markers)
+    rk0 = [c for c in pr.kids if parent[c] == pr.root]
+    fix_g = np.zeros(ng, dtype=bool)
+    if rk0:
+        fix_g[pr.gi[rk0[0]] : pr.gi[rk0[0]] + 3] = True
+    else:
+        m0 = [int(m) for m in pr.used if marker_segment[m] == pr.root]
+        if m0:
+            fix_g[pr.gl[m0[0]] : pr.gl[m0[0]] + 3] = True
+    chunks = [slice(a, min(F, a + chunk)) for a in range(0, F, chunk)]
+    it = 0
+    system = None
+    for it in range(1, iterations + 1):
+        if system is None:
+            Hgg = np.zeros((ng, ng))
+            bg = np.zeros(ng)
+            blocks = []
+            for sl in chunks:
+                J, r = pr.jacobian(sl, p, R, d, l)
+                JfT = np.ascontiguousarray(J[..., :nf].transpose(0, 2, 1))
+                Jg = J[..., nf:]
+                Hff = JfT @ J[..., :nf]
+                Hfg = JfT @ Jg
+                bf = (JfT @ r[..., None])[..., 0]
+                Jg2 = Jg.reshape(-1, ng)
+                Hgg += Jg2.T @ Jg2
+                bg += Jg2.T @ r.reshape(-1)
+                if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
+                    i = ref_frame - sl.start
+                    Hff[i, 3:, :] = 0.0
+                    Hff[i, :, 3:] = 0.0
+                    Hff[i, 3:, 3:] = np.eye(nf - 3)
+                    Hfg[i, 3:] = 0.0
+                    bf[i, 3:] = 0.0
+                Hfg[:, :, fix_g] = 0.0
+                blocks.append((Hff, Hfg, bf))
+            Hgg[fix_g, :] = 0.0
+            Hgg[:, fix_g] = 0.0
+            Hgg[fix_g, fix_g] = 1.0
+            bg[fix_g] = 0.0
+            system = (Hgg, bg, blocks)
+        Hgg, bg, blocks = system
+        while True:
+            Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
+            rhs = -bg.copy()
+            Xs = []
+            for Hff, Hfg, bf in blocks:
+                D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
+                X = np.linalg.inv(D) @ np.concatenate([Hfg, bf[..., None]], axis=2)
+                H2 = Hfg.reshape(-1, ng)
+                Sg -= H2.T @ X[..., :ng].reshape(-1, ng)
+                rhs += H2.T @ X[..., ng].reshape(-1)
+                Xs.append(X)
+            dg = np.linalg.solve(Sg, rhs)
+            df = np.concatenate([-X[..., ng] - X[..., :ng] @ dg for X in Xs])
+            p1 = p + df[:, :3]
+            R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
+            d1 = d.copy()
+            for c in pr.kids:
+                d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
+            l1 = l.copy()
+            for m in pr.used:
+                l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+            c1 = pr.cost(p1, R1, d1, l1)
+            if c1 < cost:
+                break
+            lam *= 4.0
+            if lam > 1e8:
+                c1 = cost
+                break
+        if c1 >= cost:
+            break
+        rel = (cost - c1) / max(cost, 1e-300)
+        if _TRACE: print(it, lam, np.sqrt(c1 / W))
+        p, R, d, l, cost = p1, R1, d1, l1, c1
+        system = None
+        lam = max(lam / 3.0, 1e-9)
+        if rel < tol:
+            break
+    # fix the gauge: identity rotations at the reference frame, the root's origin among its children
+    Q = R[ref_frame].copy()  # (S, 3, 3)
+    R = R @ np.swapaxes(Q, -1, -2)[None]
+    for c in pr.kids:
+        d[c] = Q[parent[c]] @ d[c]
+    for m in pr.used:
+        l[m] = Q[marker_segment[m]] @ l[m]
+    root = pr.root
+    rk = [c for c in pr.kids if parent[c] == root]
+    if rk:
+        v = d[rk].mean(0)
+        d[rk] -= v
+        for m in pr.used:
+            if marker_segment[m] == root:
+                l[m] -= v
+        p = p + R[:, root] @ v
+    new_origin = np.array(origin, dtype=float).copy()
+    new_origin[root] = p[ref_frame]  # the rest pose is the subject as seen at the reference frame
+    for s in pr.order:
+        if parent[s] >= 0:
+            new_origin[s] = new_origin[parent[s]] + d[s]
+    return CalibrationResult(
+        origin=new_origin, marker_local=l, rot=R, root_pos=p,
+        rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it,
+    )
+
+
+def track(
+    parent: np.ndarray,
+    origin: np.ndarray,
+    marker_segment: np.ndarray,
+    marker_local: np.ndarray,
+    observed: np.ndarray,
+    key_frames: np.ndarray,
+    key_rot: np.ndarray,
+    key_root: np.ndarray,
+    *,
+    factor: int = 4,
+    iterations: int = 10,
+    prior_weight: float = 1.0,
+    chunk: int = 2048,
+):
+    """IK of every frame, coarse to fine in time from poses known at ``key_frames``.
+
+    Where markers alone leave a pose ambiguous (segments with one or two
+    markers, held only by their joints), a good start decides which solution
+    IK finds. Starting from the key poses, frames ever closer together are
+    solved — every ``stride / factor``-th frame, the start and the rotation
+    prior slerped between the frames already solved — until every frame is.
+    Returns :class:`~mocapskel.solvers.ik.IKResult`-like (rot (F, S, 3, 3),
+    root_pos (F, 3), residual (F, M)).
+    """
+    from .ik import solve_ik
+    from .rotations import slerp_fill
+
+    F, M, _ = observed.shape
+    S = len(parent)
+    key_frames = np.asarray(key_frames, dtype=int)
+    known = np.zeros(F, dtype=bool)
+    rot = np.tile(np.eye(3), (F, S, 1, 1))
+    root = np.zeros((F, 3))
+    resid = np.full((F, M), np.nan)
+    rot[key_frames], root[key_frames], known[key_frames] = key_rot, key_root, True
+    stride = max(1, int(np.ceil(F / max(len(key_frames), 1))))
+    while True:
+        stride = max(1, stride // factor)
+        todo = np.zeros(F, dtype=bool)
+        todo[::stride] = True
+        todo &= ~known
+        if stride == 1:
+            todo = ~known | np.isin(np.arange(F), key_frames)  # the key frames get residuals too
+        frames = np.flatnonzero(todo | known)
+        kf = known[frames]
+        R0 = rot[frames].copy()
+        for s in range(S):
+            R0[:, s] = slerp_fill(R0[:, s], kf)
+        p0 = np.stack([np.interp(frames, frames[kf], root[frames[kf], i]) for i in range(3)], axis=1)
+        new = np.flatnonzero(todo[frames])
+        for a in range(0, new.size, chunk):
+            sel = new[a : a + chunk]
+            res = solve_ik(parent, origin, marker_segment, marker_local, observed[frames[sel]],
+                           init_rot=R0[sel], init_root=p0[sel], prior_rot=R0[sel], iterations=iterations,
+                           prior_weight=prior_weight)
+            f = frames[sel]
+            rot[f], root[f], resid[f] = res.rot, res.root_pos, res.residual
+        known[frames] = True
+        if stride == 1:
+            break
+    return rot, root, resid
