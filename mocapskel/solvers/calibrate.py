@@ -33,8 +33,6 @@ import numpy as np
 
 from ..io.bvh import depth_first_order
 
-import os
-_TRACE = bool(os.environ.get("CAL_TRACE"))
 __all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
 
 
@@ -121,6 +119,7 @@ class _Problem:
         kids = [s for s in range(S) if self.parent[s] >= 0]
         self.gi = {c: 3 * i for i, c in enumerate(kids)}
         base = 3 * len(kids)
+        self.nd = base
         self.gl = {int(m): base + 3 * i for i, m in enumerate(self.used)}
         self.ng = base + 3 * len(self.used)
         self.kids = kids
@@ -148,28 +147,67 @@ class _Problem:
         return float(np.einsum("fmi,fmi->", r, r))
 
     def jacobian(self, sl, p, R, d, l):
-        """(n, 3U, nf + ng) Jacobian and (n, 3U) residual for frames ``sl``."""
+        """Jacobian blocks and residual for frames ``sl``.
+
+        Returns Jf (n, 3U, nf) for the poses, Jd (n, 3U, nd) for the bone
+        offsets, Rw (n, U, 3, 3) the weighted rotation that carries each marker's
+        own offset (its Jacobian block, kept apart: it touches only that
+        marker's rows) and the residual r (n, 3U).
+        """
         p, R = p[sl], R[sl]
         P, G, x = self.fk(p, R, d, l)
         n = p.shape[0]
         U = self.used.size
-        J = np.zeros((n, 3 * U, self.nf + self.ng))
-        nf = self.nf
-        eye = np.eye(3)
+        nf, nd = self.nf, self.nd
+        Jf = np.zeros((n, 3 * U, nf))
+        Jd = np.zeros((n, 3 * U, nd))
+        t_all = self.seg[self.used]
+        w = self.w[sl][:, self.used]  # (n, U)
+        Rw = R[:, t_all] * w[..., None, None]
         for i, m in enumerate(self.used):
-            t = int(self.seg[m])
+            t = int(t_all[i])
             rows = slice(3 * i, 3 * i + 3)
-            w = self.w[sl, m][:, None, None]
-            J[:, rows, 0:3] = eye * w
+            wi = w[:, i, None, None]
+            Jf[:, rows, 0:3] = np.eye(3) * wi
             pth = self.path[t]
             for k, s in enumerate(pth):
                 u = R[:, t] @ l[m] if s == t else G[:, pth[k + 1]]
-                J[:, rows, 3 + 3 * s : 6 + 3 * s] = -_hat(u) * w
+                Jf[:, rows, 3 + 3 * s : 6 + 3 * s] = -_hat(u) * wi
             for c in pth[1:]:
-                J[:, rows, nf + self.gi[c] : nf + self.gi[c] + 3] = R[:, self.parent[c]] * w
-            J[:, rows, nf + self.gl[int(m)] : nf + self.gl[int(m)] + 3] = R[:, t] * w
-        r = ((x - self.y[sl][:, self.used]) * self.w[sl][:, self.used, None]).reshape(n, -1)
-        return J, r
+                Jd[:, rows, self.gi[c] : self.gi[c] + 3] = R[:, self.parent[c]] * wi
+        r = ((x - self.y[sl][:, self.used]) * w[..., None]).reshape(n, -1)
+        return Jf, Jd, Rw, r
+
+    def normal_equations(self, sl, p, R, d, l):
+        """Per-frame blocks (Hff, Hfg, bf) and the frames' share of (Hgg, bg).
+
+        Unknowns g = (bone offsets, marker offsets). A marker offset's Jacobian
+        is the marker's rotation, so its blocks come in closed form: sum_f w R^T R
+        is the marker's visible count times I.
+        """
+        Jf, Jd, Rw, r = self.jacobian(sl, p, R, d, l)
+        n, U = Rw.shape[:2]
+        nf, nd = self.nf, self.nd
+        JfT = np.ascontiguousarray(Jf.transpose(0, 2, 1))
+        Hff = JfT @ Jf
+        bf = (JfT @ r[..., None])[..., 0]
+        Hfg = np.empty((n, nf, nd + 3 * U))
+        Hfg[..., :nd] = JfT @ Jd
+        Jf4 = Jf.reshape(n, U, 3, nf)
+        Hfg[..., nd:] = (Jf4.transpose(0, 1, 3, 2) @ Rw).transpose(0, 2, 1, 3).reshape(n, nf, 3 * U)
+        Jd2 = Jd.reshape(-1, nd)
+        Hgg = np.zeros((nd + 3 * U, nd + 3 * U))
+        Hgg[:nd, :nd] = Jd2.T @ Jd2
+        RwU = Rw.transpose(1, 0, 2, 3).reshape(U, 3 * n, 3)
+        Hdl = (Jd.reshape(n, U, 3, nd).transpose(1, 3, 0, 2).reshape(U, nd, 3 * n) @ RwU).transpose(1, 0, 2).reshape(nd, 3 * U)
+        Hgg[:nd, nd:] = Hdl
+        Hgg[nd:, :nd] = Hdl.T
+        idx = np.arange(nd, nd + 3 * U)
+        Hgg[idx, idx] = np.repeat(self.w[sl][:, self.used].sum(0), 3)
+        bg = np.empty(nd + 3 * U)
+        bg[:nd] = Jd2.T @ r.reshape(-1)
+        bg[nd:] = (r.reshape(n, U, 3).transpose(1, 0, 2).reshape(U, 1, 3 * n) @ RwU).reshape(-1)
+        return Hff, Hfg, bf, Hgg, bg
 
 
 def refine_skeleton(
@@ -226,15 +264,9 @@ def refine_skeleton(
             bg = np.zeros(ng)
             blocks = []
             for sl in chunks:
-                J, r = pr.jacobian(sl, p, R, d, l)
-                JfT = np.ascontiguousarray(J[..., :nf].transpose(0, 2, 1))
-                Jg = J[..., nf:]
-                Hff = JfT @ J[..., :nf]
-                Hfg = JfT @ Jg
-                bf = (JfT @ r[..., None])[..., 0]
-                Jg2 = Jg.reshape(-1, ng)
-                Hgg += Jg2.T @ Jg2
-                bg += Jg2.T @ r.reshape(-1)
+                Hff, Hfg, bf, Hgg_f, bg_f = pr.normal_equations(sl, p, R, d, l)
+                Hgg += Hgg_f
+                bg += bg_f
                 if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
                     i = ref_frame - sl.start
                     Hff[i, 3:, :] = 0.0
@@ -253,16 +285,18 @@ def refine_skeleton(
         while True:
             Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
             rhs = -bg.copy()
-            Xs = []
+            Ys = []
             for Hff, Hfg, bf in blocks:
+                # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb
                 D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
-                X = np.linalg.inv(D) @ np.concatenate([Hfg, bf[..., None]], axis=2)
-                H2 = Hfg.reshape(-1, ng)
-                Sg -= H2.T @ X[..., :ng].reshape(-1, ng)
-                rhs += H2.T @ X[..., ng].reshape(-1)
-                Xs.append(X)
+                Li = np.linalg.inv(np.linalg.cholesky(D))
+                Y = Li @ np.concatenate([Hfg, bf[..., None]], axis=2)
+                Yg = Y[..., :ng].reshape(-1, ng)
+                Sg -= Yg.T @ Yg
+                rhs += Yg.T @ Y[..., ng].reshape(-1)
+                Ys.append((Li, Y))
             dg = np.linalg.solve(Sg, rhs)
-            df = np.concatenate([-X[..., ng] - X[..., :ng] @ dg for X in Xs])
+            df = np.concatenate([-(np.swapaxes(Li, 1, 2) @ (Y[..., ng] + Y[..., :ng] @ dg)[..., None])[..., 0] for Li, Y in Ys])
             p1 = p + df[:, :3]
             R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
             d1 = d.copy()
@@ -281,7 +315,6 @@ def refine_skeleton(
         if c1 >= cost:
             break
         rel = (cost - c1) / max(cost, 1e-300)
-        if _TRACE: print(it, lam, np.sqrt(c1 / W))
         p, R, d, l, cost = p1, R1, d1, l1, c1
         system = None
         lam = max(lam / 3.0, 1e-9)
