@@ -70,8 +70,13 @@ class Run:
     warnings: list[str] = field(default_factory=list)
 
 
-def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions()) -> tuple[Any, str]:
-    """Read a take (C3D/TRC) or a saved artifact. Returns (artifact, cache key of its content)."""
+def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions(), *, hash_content: bool = True) -> tuple[Any, str]:
+    """Read a take (C3D/TRC) or a saved artifact. Returns (artifact, cache key of its content).
+
+    ``hash_content=False``: the key names the file (path, size, modification
+    time) instead of hashing its content, for callers without a cache (a
+    long take's hash costs as much as a tenth of its ezc3d read).
+    """
     p = Path(path)
     if not p.exists():
         raise InputError("no such file — check the path", str(path))
@@ -79,7 +84,11 @@ def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions()) -> tu
         raise InputError("is a folder, not a take — give a .c3d or .trc file", str(path))
     if not p.is_file():  # a FIFO or a device: hashing it would block or never end
         raise InputError("not a regular file — give a .c3d or .trc file", str(path))
-    key = file_key(p, dataclasses.asdict(read))
+    if hash_content:
+        key = file_key(p, dataclasses.asdict(read))
+    else:
+        st = p.stat()
+        key = stage_key("read", 0, dataclasses.asdict(read), f"file:{p.resolve()}:{st.st_size}:{st.st_mtime_ns}")
     if p.suffix.lower() == ARTIFACT_SUFFIX:
         return artifacts.load(p), key
     from .io.markers import read_markers
@@ -113,7 +122,7 @@ def run_until(
     t0 = time.perf_counter()
     seconds: dict[str, float] = {}
     if isinstance(source, (str, os.PathLike)):
-        obj, key = read_input(source, read)
+        obj, key = read_input(source, read, hash_content=cache.folder is not None)
         seconds["read"] = time.perf_counter() - t0
     else:
         obj = source
@@ -226,7 +235,7 @@ def solve(
     params = dict(params or {})
     t0 = time.perf_counter()
     seconds: dict[str, float] = {}
-    obj = read_input(source, read)[0] if isinstance(source, (str, os.PathLike)) else source
+    obj = read_input(source, read, hash_content=False)[0] if isinstance(source, (str, os.PathLike)) else source
     mk = artifacts.markers_of(obj)
     seconds["read"] = time.perf_counter() - t0
     t = time.perf_counter()

@@ -448,3 +448,46 @@ def test_damaged_parameter_sections_never_crash_the_process(tmp_path: Path, good
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd=repo, env=env)
     assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
     assert "'error'" in r.stdout
+
+
+# --------------------------------------------------------------------------- what the fast read relies on
+
+
+@pytest.mark.parametrize("storage", ["integer", "float"])
+def test_ezc3d_itself_reads_negative_residuals_as_nan(tmp_path: Path, storage: str) -> None:
+    """The ezc3d engine does not fetch residuals: ezc3d must already have set those points to NaN."""
+    from ezc3d import ezc3d as swig
+
+    vals = np.zeros((5, 2, 4))
+    vals[..., :3] = np.arange(30).reshape(5, 2, 3) + 7.0
+    vals[2, 1, 3] = -1  # coordinates present, residual negative
+    f = raw_c3d(tmp_path / f"{storage}.c3d", vals, ["A", "B"], rate=50.0, scale=0.1 if storage == "integer" else -0.1)
+    pts = swig.c3d(str(f)).get_points()[:3].transpose(2, 1, 0)
+    assert np.isnan(pts[2, 1]).all()
+    assert np.isfinite(np.delete(pts.reshape(-1, 3), 2 * 2 + 1, axis=0)).all()
+    assert np.isnan(read_c3d(f).points[2, 1]).all()
+
+
+def test_fit_without_cache_does_not_hash_the_take(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from mocapskel import pipeline
+    from mocapskel.cache import Cache
+
+    rng = np.random.default_rng(3)
+    a, b = tmp_path / "a.c3d", tmp_path / "b.c3d"
+    write_markers(a, random_markers(rng, F=200, gaps=0.0))
+    write_markers(b, random_markers(rng, F=200, gaps=0.0))
+    key_a = pipeline.read_input(a, hash_content=False)[1]
+    assert key_a == pipeline.read_input(a, hash_content=False)[1] != pipeline.read_input(b, hash_content=False)[1]
+    assert key_a != pipeline.read_input(a, pipeline.ReadOptions(exclude=("MK00",)), hash_content=False)[1]
+
+    def no_hash(*args, **kw):
+        raise AssertionError("hashed without a cache")
+
+    monkeypatch.setattr(pipeline, "file_key", no_hash)
+    pipeline.run_until(a, "clean", cache=Cache(None))
+    with pytest.raises(AssertionError, match="hashed"):
+        pipeline.run_until(a, "clean", cache=Cache(tmp_path / "cache"))
+    monkeypatch.undo()
+    first = pipeline.run_until(a, "clean", cache=Cache(tmp_path / "cache"))
+    again = pipeline.run_until(a, "clean", cache=Cache(tmp_path / "cache"))
+    assert again.cached == ["clean"] and again.key == first.key

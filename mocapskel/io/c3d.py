@@ -23,13 +23,17 @@ Timings (2-core machine, ezc3d 1.7.x, best of 10):
   and ``keepParametersTrailingSpaces``); going through the SWIG object skips
   the numpy copies of analogs, camera masks and rotations that the Python
   wrapper always makes (16 % faster on a synthetic take with 64 analog
-  channels at 10x the point rate: 0.27 s against 0.32 s).
+  channels at 10x the point rate: 0.27 s against 0.32 s). The residuals are
+  not fetched either: ezc3d has already set the points they mark as missing
+  to NaN.
 - ``engine="numpy"`` (a memory map of the data block, checked layout) reads
   the same file in 0.005 s.
 - 60,000 frames x 48 markers, float, no analogs: SWIG path 1.3-1.8 s and
   about 590 MB peak (ezc3d keeps one C++ object per point and frame); the
-  Python wrapper 2.6 s; ``engine="numpy"`` 0.10 s and little more memory
-  than the output array. The two engines agree exactly on every file of the
+  Python wrapper 2.6 s (1.6 s with ``extract_forceplat_data=False``);
+  :func:`~mocapskel.io.markers.read_markers` as a whole about 0.98 times that
+  plain ezc3d read (fresh processes, median of 5); ``engine="numpy"`` 0.10 s
+  and little more memory than the output array. The two engines agree exactly on every file of the
   real-data collection (``tests/test_io_realdata.py``) and on integer, DEC
   and MIPS files built byte by byte (``tests/test_io_c3d.py``).
 
@@ -447,17 +451,23 @@ def _read_frames_numpy(path: str | os.PathLike, lay: C3DLayout, start: int, stop
     return xyz, residual
 
 
-def _read_frames_ezc3d(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """All frames ezc3d returns: ``(F, P, 3)`` coordinates and ``(F, P)`` residuals."""
+def _read_frames_ezc3d(path: str | os.PathLike) -> np.ndarray:
+    """All frames ezc3d returns: ``(F, P, 3)`` coordinates, NaN where the residual is negative.
+
+    ezc3d itself sets a point with a negative residual to NaN while it reads
+    (``Point``'s constructor; missing markers have read as NaN since before
+    1.5, the oldest version mocapskel accepts), so the residuals are not asked
+    for: ``get_point_residuals`` would copy another (F, P) array out of
+    ezc3d's per-point objects (about 5 % of the read of a long take). The
+    tests check the two engines against each other on files with negative
+    residuals.
+    """
     from ezc3d import ezc3d as _swig  # the SWIG layer: skips analog/rotation/camera-mask copies
 
     c = _swig.c3d(str(path))
     raw = c.get_points()  # (4, P, F) float64, scale already applied
-    res = c.get_point_residuals()  # (1, P, F)
     del c
-    xyz = np.ascontiguousarray(raw[:3].transpose(2, 1, 0))
-    del raw
-    return xyz, np.ascontiguousarray(res[0].T)
+    return np.ascontiguousarray(raw[:3].transpose(2, 1, 0))
 
 
 def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ezc3d") -> RawTake:
@@ -529,9 +539,10 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
     # ----- points
     if engine == "ezc3d" and lay.processor == "mips":
         engine = "numpy"  # ezc3d 1.7: "MIPS processor type not supported yet"
+    residual: np.ndarray | None = None  # (F, P); None: negative residuals are NaN already (ezc3d)
     try:
         if engine == "ezc3d":
-            xyz, residual = _read_frames_ezc3d(path)
+            xyz = _read_frames_ezc3d(path)
         elif engine == "numpy":
             xyz, residual = _read_frames_numpy(path, lay, 0, target)
         else:
@@ -545,20 +556,24 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
     if xyz.shape[1] != P:
         raise InputError(f"damaged C3D file (POINT:USED is {P} but {xyz.shape[1]} points were read) — {_TO_USER}", spath)
     if xyz.shape[0] > target:
-        xyz, residual = xyz[:target], residual[:target]
+        xyz = xyz[:target]
+        residual = residual[:target] if residual is not None else None
     F = xyz.shape[0]
     if F < target:
         if F != _SATURATED:  # ezc3d and this parser disagree about the layout
             raise InputError(f"damaged C3D file ({F} frames read where {target} are declared) — {_TO_USER}", spath)
         txyz, tres = _read_frames_numpy(path, lay, F, target)  # ezc3d stops at 65535 frames
         xyz = np.concatenate([xyz, txyz])
-        residual = np.concatenate([residual, tres])
+        residual = np.concatenate([residual if residual is not None else np.zeros((F, P)), tres])
         del txyz, tres
     if saturated:  # trailing frames of zero bytes past frame 65535 are block padding, not frames
-        past = ~((xyz[_SATURATED:] != 0).any(axis=(1, 2)) | (residual[_SATURATED:] != 0).any(axis=1))
+        past = ~(xyz[_SATURATED:] != 0).any(axis=(1, 2))  # a NaN (ezc3d's negative residual) is not padding
+        if residual is not None:
+            past &= ~(residual[_SATURATED:] != 0).any(axis=1)
         n_pad = int(np.argmin(past[::-1])) if not past.all() else len(past)
         if n_pad:
-            xyz, residual = xyz[: len(xyz) - n_pad], residual[: len(residual) - n_pad]
+            xyz = xyz[: len(xyz) - n_pad]
+            residual = residual[: len(residual) - n_pad] if residual is not None else None
     F = xyz.shape[0]
     if F > _SATURATED:
         how = "is saturated at 65535; the rest found from the size of the data block" if saturated else f"says {declared}"
@@ -573,7 +588,9 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
         warnings.append(f"the file declares a different frame count ({said}) than its data block holds ({F}); using the data")
 
     # ----- gaps: negative residual, or exactly (0, 0, 0)
-    gap = (residual < 0) | (xyz == 0).all(axis=2)
+    gap = (xyz[..., 0] == 0) & (xyz[..., 1] == 0) & (xyz[..., 2] == 0)
+    if residual is not None:
+        gap |= residual < 0
     xyz[gap] = np.nan
 
     # ----- units

@@ -318,10 +318,13 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
     warnings = list(raw.warnings)
 
     # ----- gaps: any non-finite coordinate makes the whole sample a gap
-    finite = np.isfinite(pts).all(axis=2)  # (F, M)
-    nonfinite = int(np.count_nonzero(np.isinf(pts).any(axis=2)))
+    # (one pass per coordinate: reducing over a last axis of length 3 is several times slower)
+    finite = np.isfinite(pts[..., 0]) & np.isfinite(pts[..., 1]) & np.isfinite(pts[..., 2])  # (F, M)
+    nonfinite = 0
     if not finite.all():
-        pts[~finite] = np.nan
+        gaps = ~finite
+        nonfinite = int(np.count_nonzero(np.isinf(pts[gaps]).any(axis=1)))
+        pts[gaps] = np.nan
     if nonfinite:
         warnings.append(f"{nonfinite} samples with infinite coordinates read as gaps")
 
@@ -375,7 +378,7 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
             f"no marker data: every coordinate of the {M} markers is missing — export the take again with its trajectories",
             spath,
         )
-    biggest = float(np.abs(pts[finite]).max())
+    biggest = float(max(np.fmax.reduce(pts, axis=None), -np.fmin.reduce(pts, axis=None)))  # gaps are NaN: skipped
     if biggest > MAX_COORDINATE_MM:
         raise InputError(
             f"coordinates up to {biggest:.3g} mm — beyond any capture volume ({MAX_COORDINATE_MM:g} mm);"
