@@ -1,6 +1,8 @@
 import numpy as np
+import pytest
 from dataclasses import replace
 
+from mocapskel.errors import DataError
 from mocapskel.stages import clean
 
 
@@ -45,3 +47,128 @@ def test_gap_edges_trimmed_and_short_runs_dropped(linkage):
     # the take's own ends are not gap edges
     assert vis[0, i0] and vis[-1, i0]
     assert out.info["clean"]["dropped_markers"] == [m.labels[1]]
+
+
+# --------------------------------------------------------------------------- the vectorised kernels against plain references
+
+
+def _reference_find_jumps(points: np.ndarray, rate: float, params: clean.Params) -> np.ndarray:
+    """find_jumps written plainly: full hold-fill, np.linalg.norm, np.median windows, scipy dilation."""
+    import warnings
+
+    from scipy import ndimage
+
+    F, M, _ = points.shape
+    vis = np.isfinite(points).all(axis=2)
+    if F < 5:
+        return np.zeros((F, M), dtype=bool)
+    w = max(5, int(round(params.jump_window_s * rate)) | 1)
+    h = w // 2
+    filled = np.nan_to_num(clean.hold_fill(points, vis), nan=0.0)
+    step = np.full((F, M), np.inf)
+    with np.errstate(invalid="ignore"):
+        step[1:] = np.linalg.norm(points[1:] - points[:-1], axis=2)
+    big = ~(step <= 0.5 * params.jump_mm)
+    big[0] = False
+    cand = ndimage.binary_dilation(big, structure=np.ones((2 * h + 3, 1), dtype=bool)) & vis
+    sampled = np.zeros((F, M), dtype=bool)
+    sampled[:: max(1, F // 2000)] = True
+    sampled &= vis
+    fi, mi = np.nonzero(cand | sampled)
+    dev = np.full((F, M), np.nan)
+    win = filled[np.clip(fi[:, None] + np.arange(-h, h + 1), 0, F - 1), mi[:, None]]
+    dev[fi, mi] = np.linalg.norm(points[fi, mi] - np.median(win, axis=1), axis=1)
+    mad = np.zeros(M)
+    has = sampled.any(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mad[has] = np.nanmedian(np.where(sampled, dev, np.nan)[:, has], axis=0)
+    thresh = np.maximum(params.jump_mm, params.jump_mad * 1.4826 * np.nan_to_num(mad))
+    with np.errstate(invalid="ignore"):
+        return cand & (dev > thresh[None, :])
+
+
+def _reference_run(markers, params: clean.Params):
+    """clean.run written plainly (scipy.ndimage for erosion and run labels); returns (points, info)."""
+    from scipy import ndimage
+
+    pts = markers.points.copy()
+    F = pts.shape[0]
+    vis0 = np.isfinite(pts).all(axis=2)
+    pts[~vis0] = np.nan
+    jumps = _reference_find_jumps(pts, markers.rate, params)
+    vis = vis0 & ~jumps
+    trimmed = np.zeros_like(vis)
+    if params.trim_frames > 0 and F > 2 * params.trim_frames:
+        k = params.trim_frames
+        kept = ndimage.binary_erosion(vis, structure=np.ones((2 * k + 1, 1), dtype=bool), border_value=1)
+        trimmed, vis = vis & ~kept, kept
+    lab, n = ndimage.label(vis, structure=np.array([[0, 1, 0]] * 3, dtype=bool))
+    short = np.bincount(lab.ravel(), minlength=n + 1) < max(1, int(np.ceil(params.min_run_s * markers.rate)))
+    short[0] = False
+    short_mask = short[lab]
+    vis &= ~short_mask
+    pts[~vis] = np.nan
+    keep = vis.any(axis=0)
+    info = {"jump_samples": int(jumps.sum()), "trimmed_samples": int((trimmed & ~jumps).sum()),
+            "short_run_samples": int((short_mask & ~trimmed).sum()), "short_runs": int(short[1:].sum()),
+            "visible_before": int(vis0.sum()), "visible_after": int(vis.sum())}
+    return pts[:, keep], info
+
+
+def _messy_take():
+    from mocapskel.synth.presets import Recipe, make
+
+    m = make(Recipe(kind="human", seed=3, frames=2500, noise_mm=1.0, gaps_per_marker_per_minute=30, jumps=40, ghosts=6)).markers
+    pts = m.points.copy()
+    pts[::9, 3] = np.nan  # flicker: many short runs
+    pts[100:104, 5] += 400.0  # a planted jump
+    pts[:, 7] = np.nan  # never seen
+    pts[10, 8, 1] = np.inf  # an infinite coordinate
+    pts[20, 9, 0] = np.nan  # one NaN coordinate
+    return replace(m, points=pts)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [clean.Params(), clean.Params(trim_frames=0), clean.Params(trim_frames=3, min_run_s=0.1), clean.Params(jump_mm=5.0, jump_mad=3.0)],
+)
+def test_run_equals_the_plain_reference(params):
+    m = _messy_take()
+    for mk in (m, replace(m, points=m.points[:40].copy()), replace(m, points=m.points[:4].copy())):
+        ref_pts, ref_info = _reference_run(mk, params)
+        if ref_pts.shape[1] == 0:  # nothing left: refused
+            with pytest.raises(DataError, match="no marker has a visible run"):
+                clean.run(mk, params)
+            continue
+        out = clean.run(mk, params)
+        np.testing.assert_array_equal(out.points, ref_pts)
+        assert {k: out.info["clean"][k] for k in ref_info} == ref_info
+        assert np.array_equal(clean.find_jumps(mk.points, mk.rate, params), _reference_find_jumps(mk.points, mk.rate, params))
+
+
+def test_hold_fill_holds_the_last_seen_value():
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(50, 6, 3))
+    vis = rng.random((50, 6)) < 0.6
+    vis[:, 2] = False  # never seen
+    vis[:7, 3] = False  # leading gap
+    pts[~vis] = np.nan
+    out = clean.hold_fill(pts, vis)
+    for m in range(6):
+        seen = np.flatnonzero(vis[:, m])
+        for f in range(50):
+            if not seen.size:
+                assert np.isnan(out[f, m]).all()
+            else:
+                src = seen[seen <= f][-1] if (seen <= f).any() else seen[0]
+                np.testing.assert_array_equal(out[f, m], pts[src, m])
+
+
+def test_no_warning_for_infinite_coordinates():
+    import warnings
+
+    m = _messy_take()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clean.run(m)

@@ -9,10 +9,10 @@
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from ..artifacts import Markers
 from ..errors import DataError
@@ -34,11 +34,58 @@ class Params:
     """Width of the running median used to find jumps (at least 5 frames)."""
 
 
-def _runs(visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Label visible runs along time. Returns (labels (F, M) int, lengths (R+1,))."""
-    structure = np.array([[0, 1, 0], [0, 1, 0], [0, 1, 0]], dtype=bool)
-    lab, n = ndimage.label(visible, structure=structure)
-    return lab, np.bincount(lab.ravel(), minlength=n + 1)
+def _visible(points: np.ndarray) -> np.ndarray:
+    """(F, M) bool: samples whose three coordinates are all finite.
+
+    One pass per coordinate: a reduction over a last axis of length 3
+    (``np.isfinite(points).all(axis=2)``) is several times slower.
+    """
+    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
+
+
+def _norm3(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` for (..., 3) vectors, bit for bit, without the slow short-axis reduction."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return np.sqrt((x * x + y * y) + z * z)
+
+
+def _window_count(mask: np.ndarray, before: int, after: int) -> np.ndarray:
+    """Per column, how many of ``mask[f - before : f + after + 1]`` are True (outside the array: False)."""
+    F = mask.shape[0]
+    # running count, padded so that every window is one difference of two slices
+    c = np.zeros((before + F + after + 1,) + mask.shape[1:], dtype=np.int32)
+    np.cumsum(mask, axis=0, dtype=np.int32, out=c[before + 1 : before + F + 1])
+    c[before + F + 1 :] = c[before + F]
+    return c[before + after + 1 :] - c[:F]
+
+
+def _short_runs(vis: np.ndarray, min_run: int) -> tuple[np.ndarray, int]:
+    """Visible runs (along time, per marker) shorter than ``min_run`` frames.
+
+    Returns (mask (F, M) of their samples, number of such runs).
+    """
+    F, M = vis.shape
+    edge = np.zeros((M, F + 2), dtype=np.int8)  # marker-major: runs are contiguous
+    edge[:, 1:-1] = vis.T
+    d = np.diff(edge, axis=1)  # +1 where a run starts, -1 one past its end
+    ms, fs = np.nonzero(d == 1)  # both in (marker, frame) order, so the k-th start and end are one run
+    me, fe = np.nonzero(d == -1)
+    short = fe - fs < min_run
+    delta = np.zeros((M, F + 1), dtype=np.int8)
+    delta[ms[short], fs[short]] = 1
+    delta[me[short], fe[short]] = -1  # an end never coincides with a start (runs are separated by gaps)
+    return np.cumsum(delta[:, :F], axis=1, dtype=np.int8).T.astype(bool), int(short.sum())
+
+
+def _hold_index(vis: np.ndarray) -> np.ndarray:
+    """(F, M) frame index :func:`hold_fill` takes each sample from (F - 1 for markers never seen)."""
+    F = vis.shape[0]
+    ar = np.arange(F, dtype=np.int32)[:, None]
+    fwd = np.where(vis, ar, np.int32(-1))
+    np.maximum.accumulate(fwd, axis=0, out=fwd)
+    # before its first sighting a marker holds its first seen value
+    first = np.where(vis.any(axis=0), np.argmax(vis, axis=0), F - 1).astype(np.int32)
+    return np.where(fwd >= 0, fwd, first[None, :])
 
 
 def hold_fill(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -46,13 +93,7 @@ def hold_fill(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
 
     points : (F, M, 3) ndarray; visible : (F, M) bool. Markers never seen stay NaN.
     """
-    F = points.shape[0]
-    ar = np.arange(F)[:, None]
-    fwd = np.where(visible, ar, -1)
-    np.maximum.accumulate(fwd, axis=0, out=fwd)
-    bwd = np.where(visible, ar, F)
-    bwd = np.minimum.accumulate(bwd[::-1], axis=0)[::-1]
-    idx = np.where(fwd >= 0, fwd, np.minimum(bwd, F - 1))
+    idx = _hold_index(visible)
     return np.take_along_axis(points, idx[:, :, None], axis=0)
 
 
@@ -68,41 +109,52 @@ def find_jumps(points: np.ndarray, rate: float, params: Params = Params()) -> np
     -------
     (F, M) bool ndarray, True where a sample is a jump.
     """
+    return _find_jumps(points, _visible(points), rate, params)
+
+
+def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params) -> np.ndarray:
     F, M, _ = points.shape
-    vis = np.isfinite(points).all(axis=2)
     if F < 5:
         return np.zeros((F, M), dtype=bool)
     w = max(5, int(round(params.jump_window_s * rate)) | 1)
     h = w // 2
-    filled = np.nan_to_num(hold_fill(points, vis), nan=0.0)
     # The running median is only needed where a jump can be: next to a step larger
     # than half the jump size (or a gap edge), plus a sparse sampling of frames
-    # for each marker's robust spread (MAD).
+    # for each marker's robust spread (MAD). Its windows read the gap-filled
+    # track (hold_fill) through the hold index, at the window frames only.
     step = np.full((F, M), np.inf)
-    step[1:] = np.linalg.norm(points[1:] - points[:-1], axis=2)
+    with np.errstate(invalid="ignore"):  # inf - inf in a gap
+        d = np.subtract(points[1:], points[:-1])
+    d *= d
+    np.add(d[..., 0], d[..., 1], out=step[1:])  # np.linalg.norm's order: (x² + y²) + z²
+    step[1:] += d[..., 2]
+    np.sqrt(step, out=step)
+    del d
     big = ~(step <= 0.5 * params.jump_mm)  # NaN (gap edge) counts as big
     big[0] = False
-    cand = ndimage.binary_dilation(big, structure=np.ones((2 * h + 3, 1), dtype=bool)) & vis
+    cand = (_window_count(big, h + 1, h + 1) > 0) & vis
+    every = max(1, F // 2000)
     sampled = np.zeros((F, M), dtype=bool)
-    sampled[:: max(1, F // 2000)] = True
-    sampled &= vis
+    sampled[::every] = vis[::every]
     fi, mi = np.nonzero(cand | sampled)
+    hold = _hold_index(vis).ravel()
+    flat = points.reshape(F * M, 3)
     dev = np.full((F, M), np.nan)
     offs = np.arange(-h, h + 1)
     for k in range(0, fi.size, 200_000):  # chunks bound the memory of the windows
         f, m = fi[k : k + 200_000], mi[k : k + 200_000]
-        win = filled[np.clip(f[:, None] + offs, 0, F - 1), m[:, None]]  # (K, w, 3)
-        dev[f, m] = np.linalg.norm(points[f, m] - np.median(win, axis=1), axis=1)
-    with np.errstate(invalid="ignore"):
-        d_s = np.where(sampled, dev, np.nan)
-        has = sampled.any(axis=0)
-        mad = np.zeros(M)
-        if has.any():
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                mad[has] = np.nanmedian(d_s[:, has], axis=0)
+        src = np.take(hold, np.clip(f[:, None] + offs, 0, F - 1) * M + m[:, None])  # (K, w) frames
+        win = np.take(flat, src * M + m[:, None], axis=0)  # (K, w, 3), every sample seen
+        med = np.partition(win, h, axis=1)[:, h]  # the median of an odd window
+        dev[f, m] = _norm3(flat[f * M + m] - med)
+    # the MAD over the sampled frames only (rows never sampled hold nothing)
+    d_s = np.where(sampled[::every], dev[::every], np.nan)
+    has = sampled[::every].any(axis=0)
+    mad = np.zeros(M)
+    if has.any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mad[has] = np.nanmedian(d_s[:, has], axis=0)
     mad = np.nan_to_num(mad, nan=0.0)
     thresh = np.maximum(params.jump_mm, params.jump_mad * 1.4826 * mad)
     with np.errstate(invalid="ignore"):
@@ -115,30 +167,26 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     Returns a new Markers with ``stage="clean"`` and ``info["clean"]`` counting
     what was removed and why. Raises DataError when nothing is left.
     """
-    pts = markers.points.copy()
-    F, M, _ = pts.shape
-    vis0 = np.isfinite(pts).all(axis=2)
-    pts[~vis0] = np.nan
-
-    jumps = find_jumps(pts, markers.rate, params)
-    pts[jumps] = np.nan
+    F, M, _ = markers.points.shape
+    vis0 = _visible(markers.points)
+    # the jump test reads visible samples only and takes any non-finite step as large,
+    # so the points need not have their gaps set to NaN before it
+    jumps = _find_jumps(markers.points, vis0, markers.rate, params)
     vis = vis0 & ~jumps
 
     trimmed = np.zeros_like(vis)
     if params.trim_frames > 0 and F > 2 * params.trim_frames:
         k = params.trim_frames
-        kept = ndimage.binary_erosion(vis, structure=np.ones((2 * k + 1, 1), dtype=bool), border_value=1)
+        # a binary erosion along time with the take's ends counted as visible
+        kept = vis & (_window_count(~vis, k, k) == 0)
         trimmed = vis & ~kept
         # never trim a run away entirely: keep runs that would vanish (they are judged by length next)
         vis = kept
 
-    lab, lengths = _runs(vis)
     min_run = max(1, int(np.ceil(params.min_run_s * markers.rate)))
-    short = lengths < min_run
-    short[0] = False
-    short_mask = short[lab]
+    short_mask, n_short = _short_runs(vis, min_run)
     vis &= ~short_mask
-    pts[~vis] = np.nan
+    pts = np.where(vis[:, :, None], markers.points, np.nan)  # gaps, jumps, trimmed edges and short runs
 
     keep = vis.any(axis=0)
     dropped = [markers.labels[i] for i in np.flatnonzero(~keep)]
@@ -151,17 +199,17 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     info = dict(markers.info)
     info["clean"] = {
         "version": VERSION,
-        "jump_samples": int(jumps.sum()),
-        "trimmed_samples": int((trimmed & ~jumps).sum()),
-        "short_run_samples": int((short_mask & ~trimmed).sum()),
-        "short_runs": int(short[1:].sum()),
+        "jump_samples": int(np.count_nonzero(jumps)),
+        "trimmed_samples": int(np.count_nonzero(trimmed & ~jumps)),
+        "short_run_samples": int(np.count_nonzero(short_mask & ~trimmed)),
+        "short_runs": n_short,
         "dropped_markers": dropped,
-        "visible_before": int(vis0.sum()),
-        "visible_after": int(vis.sum()),
+        "visible_before": int(np.count_nonzero(vis0)),
+        "visible_after": int(np.count_nonzero(vis)),
     }
     return replace(
         markers,
-        points=pts[:, keep],
+        points=pts if keep.all() else pts[:, keep],
         labels=tuple(l for l, k in zip(markers.labels, keep) if k),
         stage="clean",
         info=info,
