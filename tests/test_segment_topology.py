@@ -40,3 +40,93 @@ def test_one_rigid_body_is_refused(linkage):
     rigid = replace(m, points=m.points[:, :3])  # the three markers of one rod
     with pytest.raises(DataError, match="one rigid body"):
         pipeline.run_until(rigid, "segment")
+
+
+# --------------------------------------------------------------------------- vectorised kernels against plain references
+
+
+def test_distance_std_is_bit_for_bit_the_plain_formula():
+    rng = np.random.default_rng(5)
+    for M in (2, 3, 9, 30):
+        pts = rng.normal(size=(120, M, 3)) * 300.0
+        pts[rng.random((120, M)) < 0.2] = np.nan
+        pts[3, 0, 1] = np.inf
+        pts[:, M - 1][5:] = np.nan  # seen once: std NaN
+        with np.errstate(invalid="ignore"):
+            d = np.linalg.norm(pts[:, :, None, :] - pts[:, None, :, :], axis=-1)
+        ok = np.isfinite(d)
+        cnt = ok.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(ok, d, 0.0).sum(axis=0) / cnt
+            std = np.sqrt((np.where(ok, d - mean, 0.0) ** 2).sum(axis=0) / cnt)
+        std[cnt < 2] = np.nan
+        got, got_cnt = segment.distance_std(pts)
+        assert np.array_equal(got_cnt, cnt) and got_cnt.dtype == cnt.dtype
+        if M > 2:  # two markers: one pair, whose sum numpy may add pairwise instead of in order
+            assert np.array_equal(got, std, equal_nan=True)
+        np.testing.assert_allclose(got, std, rtol=1e-12, equal_nan=True)
+
+
+def _networkx_tree(C: np.ndarray, size: dict[int, int]):
+    """The tree as the stage built it with networkx: Kruskal MST, centre root, BFS edges."""
+    nx = pytest.importorskip("networkx")
+    S = C.shape[0]
+    G = nx.Graph()
+    G.add_nodes_from(range(S))
+    for a in range(S):
+        for b in range(a + 1, S):
+            if np.isfinite(C[a, b]):
+                G.add_edge(a, b, weight=float(C[a, b]))
+    if not nx.is_connected(G):
+        return None
+    T = nx.minimum_spanning_tree(G, weight="weight", algorithm="kruskal")
+    ecc = nx.eccentricity(T)
+    cands = [n for n, e in ecc.items() if e == min(ecc.values())]
+    dist = {n: sum(nx.single_source_shortest_path_length(T, n).values()) for n in cands}
+    root = min(cands, key=lambda n: (dist[n], -size.get(n, 0), n))
+    return root, [tuple(e) for e in nx.bfs_edges(T, root)]
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_tree_is_networkx_kruskal_centre_and_bfs(seed):
+    from mocapskel.stages import topology
+
+    rng = np.random.default_rng(seed)
+    S = int(rng.integers(2, 16))
+    C = np.round(rng.uniform(0, 5, (S, S)), 0 if seed % 2 else 3)  # integer costs: many ties
+    C = np.triu(C, 1)
+    C = C + C.T
+    C[rng.random((S, S)) < 0.3 * (seed % 3)] = np.inf
+    C = np.minimum(C, C.T)
+    np.fill_diagonal(C, np.inf)
+    size = {s: int(rng.integers(1, 5)) for s in range(S)}
+    want = _networkx_tree(C, size)
+    tree = topology.minimum_spanning_tree(S, C)
+    if want is None:
+        assert tree is None
+        return
+    root = topology.tree_centre(S, tree, size)
+    assert root == want[0]
+    assert topology._bfs(topology._neighbours(S, tree), root)[0] == want[1]
+
+
+def test_topology_of_a_long_take_reads_each_frame_once(linkage):
+    """Per-frame visibility of the segments (one product) gives the same tree and costs as counting per segment."""
+    from dataclasses import replace
+
+    from mocapskel.stages import topology
+
+    m = linkage.markers
+    pts = np.concatenate([m.points] * 5)  # 12,000 frames
+    pts[np.random.default_rng(2).random(pts.shape[:2]) < 0.05] = np.nan
+    seg = segment.run(replace(m, points=pts))
+    topo = topology.run(seg)
+    assert seg.n_segments == 3 and len(topo.edges) == 2
+    frames = topology.subsample(pts, topology.Params().n_frames)
+    assert np.array_equal(frames, topology.subsample(pts, topology.Params().n_frames, visible=np.isfinite(pts).all(-1)))
+    seen = np.stack([np.isfinite(pts[:, seg.members(s)]).all(-1).sum(1) for s in range(seg.n_segments)], axis=1)
+    a, b = topo.edges[0]
+    fr = topology.pair_frames(seen[:, a], seen[:, b], frames, topology.Params().n_frames)
+    from mocapskel.solvers.jmv import pair_cost
+
+    assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topology.Params().alpha)

@@ -68,20 +68,49 @@ def sample_frames(n_frames: int, rate: float, params: Params, rng: np.random.Gen
     return np.unique(np.clip(idx, 0, n_frames - 1))
 
 
+def _pair_distances(points: np.ndarray) -> np.ndarray:
+    """(K, P) distance of every marker pair ``i < j`` (``np.triu_indices`` order) in every frame.
+
+    points : (K, M, 3) ndarray, NaN gaps. Bit for bit ``np.linalg.norm`` of the
+    difference, NaN or inf where a marker is not seen; each pair once, without
+    a (K, M, M, 3) array of differences.
+    """
+    i, j = np.triu_indices(points.shape[1], 1)
+    sq = None
+    with np.errstate(invalid="ignore"):  # inf - inf
+        for c in range(3):
+            x = points[:, :, c]
+            d = np.take(x, i, axis=1) - np.take(x, j, axis=1)  # (K, P), C order like the sums below expect
+            d *= d
+            sq = d if sq is None else np.add(sq, d, out=sq)
+    return np.sqrt(sq, out=sq)
+
+
 def distance_std(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Std over frames of every pairwise marker distance.
 
     points : (K, M, 3) ndarray, NaN gaps.
     Returns (std (M, M) with NaN where never seen together, count (M, M) frames seen together).
     """
-    d = np.linalg.norm(points[:, :, None, :] - points[:, None, :, :], axis=-1)  # (K, M, M)
+    return _distance_std(points, _pair_distances(points))
+
+
+def _distance_std(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`distance_std` from the pair distances ``d`` (K, P) of ``points``."""
+    M = points.shape[1]
     ok = np.isfinite(d)
-    cnt = ok.sum(axis=0)
+    cnt_p = ok.sum(axis=0)
     d0 = np.where(ok, d, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = d0.sum(axis=0) / cnt
-        var = (np.where(ok, d - mean, 0.0) ** 2).sum(axis=0) / cnt
-    std = np.sqrt(var)
+        mean = d0.sum(axis=0) / cnt_p
+        var = (np.where(ok, d - mean, 0.0) ** 2).sum(axis=0) / cnt_p
+    i, j = np.triu_indices(M, 1)
+    std = np.zeros((M, M))
+    std[i, j] = std[j, i] = np.sqrt(var)
+    cnt = np.zeros((M, M), dtype=cnt_p.dtype)
+    cnt[i, j] = cnt[j, i] = cnt_p
+    # a marker with itself: distance 0 in every frame it is seen
+    np.fill_diagonal(cnt, (np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])).sum(axis=0))
     std[cnt < 2] = np.nan
     return std, cnt
 
@@ -107,12 +136,9 @@ SCALE_PERCENTILE = 25
 SIGMA_FRACTIONS = (0.06, 0.12, 0.25, 0.5, 1.0)
 
 
-def _median_distance(points: np.ndarray) -> float:
-    """Median distance between markers (points (K, M, 3)), over frames and pairs."""
-    d = np.linalg.norm(points[:, :, None] - points[:, None], axis=-1)
-    iu = np.triu_indices(points.shape[1], 1)
-    v = d[:, iu[0], iu[1]]
-    v = v[np.isfinite(v)]
+def _median_distance(d: np.ndarray) -> float:
+    """Median distance between markers, over frames and pairs, from the pair distances (K, P)."""
+    v = d[np.isfinite(d)]
     return float(np.median(v)) if v.size else float("nan")
 
 
@@ -167,8 +193,12 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     samplings = [sample_frames(F, markers.rate, params, rng) for _ in range(params.n_samplings)]
     stds = []
     seen = np.zeros(M, dtype=int)
-    for s in samplings:
-        std, cnt = distance_std(markers.points[s])
+    for si, s in enumerate(samplings):
+        pts = markers.points[s]
+        d = _pair_distances(pts)
+        std, cnt = _distance_std(pts, d)
+        if si == 0:
+            first = d  # the marker spread (below) is measured on the first sampling
         stds.append(std)
         seen = np.maximum(seen, np.diag(cnt))
     use = seen >= params.min_seen
@@ -185,7 +215,9 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             markers.source or None,
         )
     off = pooled[~np.eye(pooled.shape[0], dtype=bool)]
-    size = _median_distance(markers.points[samplings[0]][:, iu])
+    pu = np.zeros((M, M), dtype=bool)  # pairs of usable markers, as columns of the pair distances
+    pu[np.ix_(iu, iu)] = True
+    size = _median_distance(first[:, pu[np.triu_indices(M, 1)]])
     rigid_mm = min(params.rigid_mm, params.rigid_frac * size) if np.isfinite(size) and size > 0 else params.rigid_mm
     if k is None and not (np.nanpercentile(off, 95) > rigid_mm if np.isfinite(off).any() else False):
         raise DataError(

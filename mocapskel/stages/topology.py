@@ -3,13 +3,17 @@
 The joint cost of every pair of segments is computed on a drastic subsample of
 frames (with Kirk's small distance penalty α so that wrong joints cannot hide
 at infinity); the skeleton's tree is the minimum spanning tree of those costs
-(networkx). The root is the tree's centre, like a pelvis.
+(Kruskal; equal costs are taken in pair order). The root is the tree's centre,
+like a pelvis.
+
+Only the subsample and the per-frame visibility of the segments depend on the
+length of the take; both are one pass over the visibility of the markers.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
-import networkx as nx
 import numpy as np
 
 from ..artifacts import Segments, Topology
@@ -27,12 +31,20 @@ class Params:
     """Kirk's distance penalty (mm^2 of cost per mm of mean distance)."""
 
 
-def subsample(points: np.ndarray, n: int) -> np.ndarray:
-    """Indices of ``n`` frames spread evenly over the take, each the best-visible in its slice."""
+def _visible(points: np.ndarray) -> np.ndarray:
+    """(F, M) bool: all three coordinates finite (one pass per coordinate, not a reduction over the last axis)."""
+    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
+
+
+def subsample(points: np.ndarray, n: int, *, visible: np.ndarray | None = None) -> np.ndarray:
+    """Indices of ``n`` frames spread evenly over the take, each the best-visible in its slice.
+
+    ``visible`` : the (F, M) visibility of ``points``, when the caller has it.
+    """
     F = points.shape[0]
     if F <= n:
         return np.arange(F)
-    vis = np.isfinite(points).all(-1).sum(1)
+    vis = (_visible(points) if visible is None else visible).sum(1)
     edges = np.linspace(0, F, n + 1).astype(int)
     return np.array([a + int(np.argmax(vis[a:b])) for a, b in zip(edges[:-1], edges[1:]) if b > a])
 
@@ -40,23 +52,78 @@ def subsample(points: np.ndarray, n: int) -> np.ndarray:
 def pair_frames(seen_a: np.ndarray, seen_b: np.ndarray, frames: np.ndarray, n: int) -> np.ndarray:
     """Frames for one pair's cost: the common subsample where both are seen, or,
     when that leaves too few, up to ``n`` frames spread over all frames where both are."""
-    both = (seen_a > 0) & (seen_b > 0)
-    fr = frames[both[frames]]
+    fr = frames[(seen_a[frames] > 0) & (seen_b[frames] > 0)]
     if fr.size >= min(20, n):
         return fr
-    allf = np.flatnonzero(both)
+    allf = np.flatnonzero((seen_a > 0) & (seen_b > 0))
     if allf.size <= n:
         return allf
     return allf[np.linspace(0, allf.size - 1, n).round().astype(int)]
 
 
-def tree_centre(tree: nx.Graph, size: dict[int, int]) -> int:
+def minimum_spanning_tree(n_nodes: int, cost: np.ndarray) -> np.ndarray | None:
+    """Kruskal's minimum spanning tree of a symmetric cost matrix (inf: no edge).
+
+    Edges are tried by increasing cost, equal costs in pair order ``(a, b)``,
+    ``a < b``, as networkx's Kruskal does. Returns the (n_nodes - 1, 2) edges
+    in the order they were taken, or None when the graph is not connected.
+    """
+    a, b = np.triu_indices(n_nodes, 1)
+    w = cost[a, b]
+    ok = np.isfinite(w)
+    a, b, w = a[ok], b[ok], w[ok]
+    root = list(range(n_nodes))
+
+    def find(x: int) -> int:
+        while root[x] != x:
+            root[x] = root[root[x]]
+            x = root[x]
+        return x
+
+    taken = []
+    for k in np.argsort(w, kind="stable"):
+        ra, rb = find(int(a[k])), find(int(b[k]))
+        if ra != rb:
+            root[rb] = ra
+            taken.append((int(a[k]), int(b[k])))
+    if len(taken) != n_nodes - 1:
+        return None
+    return np.array(taken, dtype=int).reshape(-1, 2)
+
+
+def _neighbours(n_nodes: int, edges: np.ndarray) -> list[list[int]]:
+    """Adjacency lists, each in the order the edges are listed."""
+    nb: list[list[int]] = [[] for _ in range(n_nodes)]
+    for a, b in edges.tolist():
+        nb[a].append(b)
+        nb[b].append(a)
+    return nb
+
+
+def _bfs(nb: list[list[int]], source: int) -> tuple[list[tuple[int, int]], list[int]]:
+    """Breadth-first edges (parent, child) from ``source`` and the hop distance of every node."""
+    dist = [-1] * len(nb)
+    dist[source] = 0
+    out = []
+    queue = deque([source])
+    while queue:
+        p = queue.popleft()
+        for c in nb[p]:
+            if dist[c] < 0:
+                dist[c] = dist[p] + 1
+                out.append((p, c))
+                queue.append(c)
+    return out, dist
+
+
+def tree_centre(n_nodes: int, edges: np.ndarray, size: dict[int, int]) -> int:
     """The centre of a tree (least eccentricity); ties go to the node with the least total distance, then most markers."""
-    ecc = nx.eccentricity(tree)
-    best = min(ecc.values())
-    cands = [n for n, e in ecc.items() if e == best]
-    dist = {n: sum(nx.single_source_shortest_path_length(tree, n).values()) for n in cands}
-    return min(cands, key=lambda n: (dist[n], -size.get(n, 0), n))
+    nb = _neighbours(n_nodes, edges)
+    dist = [_bfs(nb, s)[1] for s in range(n_nodes)]
+    ecc = [max(d) for d in dist]
+    best = min(ecc)
+    cands = [s for s in range(n_nodes) if ecc[s] == best]
+    return min(cands, key=lambda s: (sum(dist[s]), -size.get(s, 0), s))
 
 
 def run(segments: Segments, params: Params = Params()) -> Topology:
@@ -65,8 +132,13 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     S = segments.n_segments
     if S < 2:
         raise DataError("fewer than two segments — nothing to connect", segments.markers.source or None)
-    frames = subsample(pts, params.n_frames)
-    seen = np.stack([np.isfinite(pts[:, segments.members(s)]).all(-1).sum(1) for s in range(S)], axis=1)  # (F, S)
+    vis = _visible(pts)
+    frames = subsample(pts, params.n_frames, visible=vis)
+    # markers of each segment seen in each frame: one product with the (M, S) membership
+    member = np.zeros((pts.shape[1], S), dtype=np.float32)
+    inseg = segments.group >= 0
+    member[np.flatnonzero(inseg), segments.group[inseg]] = 1.0
+    seen = (vis.astype(np.float32) @ member).astype(np.int64)  # (F, S), exact small counts
     C = np.full((S, S), np.inf)
     for a in range(S):
         for b in range(a + 1, S):
@@ -74,17 +146,11 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
             if fr.size:
                 sub = pts[fr]
                 C[a, b] = C[b, a] = pair_cost(sub[:, segments.members(a)], sub[:, segments.members(b)], alpha=params.alpha)
-    G = nx.Graph()
-    G.add_nodes_from(range(S))
-    for a in range(S):
-        for b in range(a + 1, S):
-            if np.isfinite(C[a, b]):
-                G.add_edge(a, b, weight=float(C[a, b]))
-    if not nx.is_connected(G):
+    tree = minimum_spanning_tree(S, C)
+    if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
-    T = nx.minimum_spanning_tree(G, weight="weight", algorithm="kruskal")
-    root = tree_centre(T, {s: int((segments.group == s).sum()) for s in range(S)})
-    edges = np.array([(a, b) for a, b in nx.bfs_edges(T, root)], dtype=int).reshape(-1, 2)
+    root = tree_centre(S, tree, {s: int((segments.group == s).sum()) for s in range(S)})
+    edges = np.array(_bfs(_neighbours(S, tree), root)[0], dtype=int).reshape(-1, 2)
     cost = np.array([C[a, b] for a, b in edges])
     info = {"version": VERSION, "frames_used": int(frames.size), "alpha": params.alpha}
     return Topology(segments=segments, edges=edges, cost=cost, pair_cost=C, root=int(root), info=info)
