@@ -27,7 +27,7 @@ from bench.common import table
 from mocapskel.solvers.hybrid import solve_tree
 from mocapskel.solvers.jmv import jmv_joint
 from mocapskel.solvers.mtb import mtb_basis, mtb_joint
-from mocapskel.solvers.rigid import kabsch
+from mocapskel.solvers.rigid import shape_poses
 from mocapskel.solvers.score import score_from_markers
 from mocapskel.solvers.sphere import gdke, mgdk, sphere_crlb, sphere_lls, sphere_mle, ugdk
 from mocapskel.synth.chains import hang_chain, kirk_linkage
@@ -67,7 +67,7 @@ def rse(est: np.ndarray, truth: np.ndarray) -> float:
 def parent_frame(P: np.ndarray, C: np.ndarray):
     """Pose of group P per frame (against its first complete frame) and C's points in that frame."""
     full = np.flatnonzero(np.isfinite(P).all(axis=(1, 2)))
-    R, t, _ = kabsch(P[full[0]], P)
+    R, t = shape_poses(P[full[0]], P)
     return R, t, np.einsum("fji,fkj->fki", R, C - t[:, None, :])
 
 

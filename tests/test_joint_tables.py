@@ -232,3 +232,79 @@ def test_active_rom_ball_joints_by_score_within_target():
     r2 = np.sum((c[:, ball] - take.truth.joints[:, ball]) ** 2, -1)
     assert np.isfinite(r2).mean() > 0.85
     assert np.sqrt(np.nanmean(r2)) < 5.0
+
+
+# --------------------------------------------------------------------------- the joints stage on long takes
+
+
+def _stage_topology(take, markers):
+    """The take's true groups and tree as the joints stage's input."""
+    from mocapskel.artifacts import Segments, Topology
+
+    t = take.truth
+    S = len(t.segment_names)
+    seg = Segments(markers=markers, group=np.asarray(t.marker_segment), dist_std=np.zeros((0, 0)), eigvals=np.zeros(0))
+    edges = np.stack([t.parent[t.joint_child], t.joint_child], axis=1)
+    return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)
+
+
+def test_joints_stage_long_take_equals_the_frame_by_frame_computation():
+    """The joints stage (fast poses, SCoRE sums over every frame, diagnostics on a spread subsample)
+    gives the centres of the plain computation (kabsch poses, SCoRE, each side's image where only one
+    segment is seen) to rounding; its diagnostics are those of the whole take within a few percent."""
+    from mocapskel import pipeline
+    from mocapskel.solvers.score import score
+    from mocapskel.stages import joints as jstage
+    from mocapskel.synth.presets import active_rom, make
+
+    take = make(active_rom(2, frames=6000))
+    clean = pipeline.run_until(take.markers, "clean").artifact
+    topo = _stage_topology(take, clean)
+    full = jstage.run(topo, jstage.Params(diag_frames=6000))
+    sub = jstage.run(topo, jstage.Params(diag_frames=2000))
+    np.testing.assert_array_equal(sub.centres, full.centres)
+    assert sub.method == full.method
+    np.testing.assert_allclose(sub.residual, full.residual, rtol=0.03)
+    turn = [[pj["turn_deg"] for pj in j.info["per_joint"]] for j in (sub, full)]
+    np.testing.assert_allclose(turn[0], turn[1], atol=1.0)  # the turn check's statistic is a stable one
+    assert sub.info["warnings"] == full.info["warnings"]
+    pts = clean.points
+    seg = topo.segments
+    for e, (a, b) in enumerate(topo.edges):
+        if full.method[e] != "score":
+            continue
+        poses = []
+        for s in (a, b):
+            P = pts[:, seg.members(s)]
+            first = np.flatnonzero(np.isfinite(P).all(axis=(1, 2)))[0]
+            ref = P[first] - P[first].mean(0)
+            R, t, _ = kabsch(ref, P)
+            poses.append((R, t, ref))
+        (R1, t1, ref1), (R2, t2, ref2) = poses
+        fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=0.0)
+        p1 = np.einsum("fij,j->fi", R1, fit.c1) + t1
+        p2 = np.einsum("fij,j->fi", R2, fit.c2) + t2
+        expected = np.where(np.isfinite(p1), np.where(np.isfinite(p2), 0.5 * (p1 + p2), p1), p2)
+        np.testing.assert_allclose(full.centres[:, e], expected, rtol=0, atol=1e-8)
+
+
+def test_relative_turn_is_the_spread_about_the_mean_relative_rotation():
+    """Relative rotations Q exp(theta_f) about a typical pose Q: the 95th percentile of |theta_f|,
+    whatever the segments' own motion; NaN frames are left out."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapskel.stages.joints import relative_turn_deg
+
+    rng = np.random.default_rng(41)
+    F = 3000
+    Q = Rotation.from_rotvec([0.3, -1.2, 0.5])
+    theta = rng.normal(0, np.radians(8), (F, 3))
+    R1 = Rotation.random(F, random_state=rng)
+    R2 = (R1 * Q * Rotation.from_rotvec(theta)).as_matrix()
+    R1 = R1.as_matrix()
+    R1[::37] = np.nan
+    keep = np.isfinite(R1[:, 0, 0])
+    expected = np.percentile(np.degrees(np.linalg.norm(theta[keep], axis=1)), 95)
+    assert relative_turn_deg(R1, R2) == pytest.approx(expected, rel=0.03)
+    Rf = Rotation.random(200, random_state=rng)  # a joint that never moves
+    assert relative_turn_deg(Rf.as_matrix(), (Rf * Q).as_matrix()) < 1e-5

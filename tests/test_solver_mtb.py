@@ -159,3 +159,42 @@ def test_kirk_linkage_middle_rod_from_mtb():
     j2 = mtb_joint(mtb_basis(g[1]), g[1], g[2]).centre
     length = np.linalg.norm(j2 - j1, axis=1).mean()
     assert abs(length / 341.0 - 1) < 0.003
+
+
+def test_long_take_basis_is_rigid_and_joint_exact():
+    """Thousands of frames (the basis points are built in pieces): still exact on noise-free data."""
+    take = hang_chain((4, 3), 9000, rng=np.random.default_rng(11))
+    A, B = groups(take)
+    b = mtb_basis(A)
+    assert b and b.coverage == 1.0
+    dd = _rigid_dists(b.points, A)
+    np.testing.assert_allclose(dd, dd[:1].repeat(len(A), 0), atol=1e-11)
+    fit = mtb_joint(b, A, B, basis_side="a")
+    assert fit.ok, fit.reason
+    np.testing.assert_allclose(fit.centre, take.truth.joints[:, 0], atol=1e-9)
+
+
+def test_unmasked_fast_paths_equal_the_masked_computation():
+    """Every point seen: the unmasked sums give what the masked ones give (a never-seen point added)."""
+    from mocapskel.solvers import jmv, mtb
+
+    rng = np.random.default_rng(12)
+    F = 400
+    o = rng.normal(0, 100, (F, 3))
+    E = Rotation.random(F, random_state=rng).as_matrix() * 50
+    pts = o[:, None] + rng.normal(0, 300, (F, 5, 3)) + rng.normal(0, 1, (F, 5, 3))
+    valid = np.ones((F, 5), bool)
+    ghost = np.concatenate([pts, np.full((F, 1, 3), np.nan)], axis=1)
+    gvalid = np.concatenate([valid, np.zeros((F, 1), bool)], axis=1)
+    fast = mtb._linear_start(o, E, pts, valid)
+    masked = mtb._linear_start(o, E, ghost, gvalid)
+    for x, y in zip(fast, masked):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+    c = o + rng.normal(0, 10, (F, 3))
+    q, d, diff, n, dbar, used = jmv._cost_terms(c, pts, valid, 3.0)
+    qm, dm, diffm, nm, dbarm, usedm = jmv._cost_terms(c, ghost, gvalid, 3.0)
+    assert q == pytest.approx(qm, rel=1e-12)
+    np.testing.assert_allclose(d, dm[:, :5], rtol=1e-14)
+    np.testing.assert_allclose(dbar, dbarm[:5], rtol=1e-14)
+    np.testing.assert_array_equal(n, nm[:5])
+    assert used.all() and not usedm[5]

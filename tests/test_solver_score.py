@@ -308,3 +308,72 @@ def test_bad_shapes_raise():
         score_from_markers(np.zeros((5, 4, 3)), np.zeros((6, 4, 3)))
     with pytest.raises(ValueError):
         score(np.zeros((5, 3, 3)), np.zeros((5, 3)), np.zeros((5, 3, 3)), np.zeros((5, 3)), weights=-np.ones(5))
+
+
+# ---------------------------------------------------------------- long takes, sums over frames
+
+
+def test_long_take_with_gaps_and_weights_equals_the_stacked_least_squares():
+    """Sums taken in pieces (long takes), NaN frames and weights: the stacked system's solution."""
+    rng = np.random.default_rng(21)
+    F = 30_000
+    R1, t1, R2, t2, _ = _poses(rng, F)
+    t2 = t2 + rng.normal(0, 2.0, (F, 3))
+    R1[rng.random(F) < 0.03] = np.nan
+    t2[rng.random(F) < 0.03, 1] = np.nan
+    w = rng.uniform(0.2, 2.0, F)
+    for weights in (None, w):
+        fit = score(R1, t1, R2, t2, weights)
+        ok = np.isfinite(R1).all((1, 2)) & np.isfinite(t2).all(1)
+        sw = np.sqrt(np.ones(F) if weights is None else weights)[ok]
+        A = np.concatenate([R1[ok], -R2[ok]], axis=2) * sw[:, None, None]  # (n, 3, 6)
+        b = (t2[ok] - t1[ok]) * sw[:, None]
+        x = np.linalg.lstsq(A.reshape(-1, 6), b.reshape(-1), rcond=None)[0]
+        assert fit.ok and fit.n_frames == ok.sum()
+        np.testing.assert_allclose(fit.c1, x[:3], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(fit.c2, x[3:], rtol=0, atol=1e-8)
+        assert np.isnan(fit.centre[~ok]).all() and np.isfinite(fit.centre[ok]).all()
+        q1 = np.einsum("fij,j->fi", R1[ok], x[:3]) + t1[ok]
+        q2 = np.einsum("fij,j->fi", R2[ok], x[3:]) + t2[ok]
+        np.testing.assert_allclose(fit.centre[ok], 0.5 * (q1 + q2), atol=1e-8)
+        r2 = np.sum((q1 - q2) ** 2, 1)
+        wn = (np.ones(F) if weights is None else weights)[ok]
+        assert fit.rms == pytest.approx(np.sqrt(np.sum(wn * r2) / wn.sum()), rel=1e-9)
+
+
+def test_hinge_centre_from_the_sums_equals_the_per_frame_formula():
+    """The hinge placement uses the system's sums (R^T R = I); the same as summing over frames."""
+    from mocapskel.solvers import score as S
+
+    rng = np.random.default_rng(22)
+    F = 2000
+    R1, t1, R2, t2, _ = _poses(rng, F, hinge=True)
+    R2 = R2 @ Rotation.from_rotvec(rng.normal(0, 0.01, (F, 3))).as_matrix()  # a wobbling hinge
+    t2 = t2 + rng.normal(0, 1.0, (F, 3))
+    t1[::50] = np.nan
+    w = rng.uniform(0.5, 1.5, F)
+    sy = S._system(R1, t1, R2, t2, w)
+    x, v = S._hinge_solution(sy, M1, M2)
+    # the per-frame formula: alpha = sum w u.(g - p0) / sum w |u|^2
+    x0 = S._truncated(sy, 1)
+    g1, g2 = S._images(sy, M1.mean(0), M2.mean(0))
+    g = (len(M1) * g1 + len(M2) * g2) / (len(M1) + len(M2))
+    p1, p2 = S._images(sy, x0[:3], x0[3:])
+    u = 0.5 * (np.einsum("fij,j->fi", R1, v[:3]) + np.einsum("fij,j->fi", R2, v[3:]))
+    ok = sy.valid
+    alpha = np.sum(sy.w[ok] * np.einsum("fi,fi->f", u[ok], (g - 0.5 * (p1 + p2))[ok])) / np.sum(
+        sy.w[ok] * np.einsum("fi,fi->f", u[ok], u[ok]))
+    np.testing.assert_allclose(x, x0 + alpha * v, rtol=0, atol=1e-9)
+
+
+def test_group_pose_reference_is_the_first_complete_frame():
+    from mocapskel.solvers.score import group_pose
+
+    rng = np.random.default_rng(23)
+    R1, t1, *_ = _poses(rng, 3000)
+    A = _markers(R1, t1, M1) + rng.normal(0, 0.5, (3000, 4, 3))
+    A[:2500, 1] = np.nan  # the first complete frame is 2500
+    R, t, ref = group_pose(A, "A")
+    np.testing.assert_allclose(ref, A[2500] - A[2500].mean(0))
+    np.testing.assert_allclose(R[2500], np.eye(3), atol=1e-12)
+    assert np.isfinite(R[:2500]).all()  # three markers are enough

@@ -316,3 +316,25 @@ def test_crlb_grows_as_the_cap_shrinks_and_is_infinite_on_a_circle():
     t = np.linspace(0, 6, 100)
     circle = np.column_stack([np.cos(t), np.sin(t), np.full_like(t, 0.5)])
     assert np.isinf(sphere_crlb(circle, 1.0)).all()
+
+
+def test_moments_of_several_markers_at_once_equal_marker_by_marker():
+    """The batched central sums (every marker seen equally often) equal the per-marker ones."""
+    from mocapskel.solvers import sphere
+
+    rng = np.random.default_rng(31)
+    X = rng.normal(0, 50, (3000, 4, 3)) + [1000.0, -500, 2000]
+    batch = sphere._moments([X[:, p] for p in range(4)])
+    for p in range(4):
+        n, mean, M2, T, Q = sphere._marker_sums(X[:, p])
+        assert batch.n[p] == n
+        np.testing.assert_allclose(batch.mean[p], mean, rtol=1e-15)
+        np.testing.assert_allclose(batch.M2[p], M2, rtol=1e-12)
+        np.testing.assert_allclose(batch.T[p], T, rtol=1e-9, atol=1e-9 * np.abs(T).max())
+        assert batch.Q[p] == pytest.approx(Q, rel=1e-12)
+    # unequal sample counts (gaps) take the per-marker path: the same sums
+    Xg = X.copy()
+    Xg[::7, 1] = np.nan
+    gaps = sphere._moments([Xg[:, p] for p in range(4)])
+    assert gaps.n[1] < gaps.n[0]
+    np.testing.assert_allclose(gaps.M2[[0, 2, 3]], batch.M2[[0, 2, 3]], rtol=1e-12)

@@ -35,7 +35,7 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, jmv_joint, joint_cost
+from .jmv import JointFit, _seen, jmv_joint, joint_cost
 from .mtb import COLLINEAR_TOL, Basis, mtb_basis, mtb_joint
 
 __all__ = ["TreeJoints", "solve_tree"]
@@ -95,7 +95,7 @@ def _noise_weight(ca: np.ndarray, cb: np.ndarray) -> float:
     motion common to both): ``E|D_a - D_b|^2 = v_a + v_b`` and
     ``E[(D_a - D_b).(D_a + D_b)] = v_a - v_b``. 0.5 when undecidable.
     """
-    ok = np.isfinite(ca).all(-1) & np.isfinite(cb).all(-1)
+    ok = _seen(ca) & _seen(cb)
     trip = ok[:-2] & ok[1:-1] & ok[2:]
     if trip.sum() < 10:
         return 0.5

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _as_points, _cost_terms, _cross, _stack
+from .jmv import JointFit, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack
 
 __all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
 
@@ -91,29 +91,49 @@ class Basis:
         return bool(self.ok)
 
 
-def _frame_coeffs(Xref: np.ndarray, vmask: np.ndarray, axes: np.ndarray, s: float, tol: float):
+def _frame_coeffs(Xref: np.ndarray, vmask: np.ndarray, axes: np.ndarray, s: float, tol: float, svd=None):
     """Weights rebuilding the full basis from the visible subset ``vmask`` of a reference shape.
 
     Returns (G (nv, 2), beta (4, 3)) so that, with o_V = mean of visible points,
     b_1, b_2 = sum_j (P_j - o_V) G_j and b_3 = b_1 x b_2, the basis points are
     o_V + [b1 b2 b3] beta[0] and that plus [b1 b2 b3] beta[k] (k = 1..3); or None
-    when the visible subset is collinear.
+    when the visible subset is collinear. ``svd``: (singular values, Vt) of the
+    centred subset when the caller has them.
     """
-    XV = Xref[vmask]
-    cV = XV.mean(0)
+    XV = Xref if vmask.all() else Xref[vmask]
+    cV = XV.sum(0) / XV.shape[0]
     Y0 = XV - cV
-    _, sv, Wt = np.linalg.svd(Y0, full_matrices=False)
+    sv, Wt = np.linalg.svd(Y0, full_matrices=False)[1:] if svd is None else svd
     if sv.size < 2 or sv[0] <= 0 or sv[1] < tol * sv[0]:
         return None
-    w1, w2 = Wt[0], Wt[1]
-    W = np.stack([w1, w2, _cross(w1, w2)], axis=1)  # columns
-    Y = Y0 @ W[:, :2]
-    G = Y @ np.linalg.inv(Y.T @ Y)  # (nv, 2)
+    W = _frame(Wt[0], Wt[1])
+    # Y = Y0 W[:, :2] has orthogonal columns of norms sv[:2] (the SVD): the least-squares
+    # weights Y (Y^T Y)^-1 are its columns over their squared norms
+    G = (Y0 @ W[:, :2]) / (sv[:2] * sv[:2])  # (nv, 2)
     beta = np.empty((4, 3))
     beta[0] = -W.T @ cV  # full centroid sits at the reference origin
-    for k in range(3):
-        beta[k + 1] = s * (W.T @ axes[:, k])
+    beta[1:] = s * (W.T @ axes).T
     return G, beta
+
+
+def _frame(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The 3x3 matrix with columns u, v, u x v (u, v (3,))."""
+    W = np.empty((3, 3))
+    W[:, 0] = u
+    W[:, 1] = v
+    W[:, 2] = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+    return W
+
+
+def _basis_points(Bf: np.ndarray, oV: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """(f, 4, 3) points o_V + B coef[k] for frames' axes B (f, 3, 3) and origins o_V (f, 3),
+    as products of the (3f, 3) stack in pieces small enough for BLAS to stay on one thread."""
+    out = np.empty((oV.shape[0], 4, 3))
+    for lo in range(0, oV.shape[0], 4096):
+        Bk = Bf[lo : lo + 4096]
+        out[lo : lo + 4096] = (Bk.reshape(-1, 3) @ coef.T).reshape(-1, 3, 4).transpose(0, 2, 1)
+    out += oV[:, None, :]
+    return out
 
 
 def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25) -> Basis:
@@ -140,30 +160,46 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
     empty = np.full((F, 4, 3), np.nan)
     if N < 3:
         return Basis(empty, False, f"{N} point(s): a basis needs 3 non-collinear points")
-    vis = np.isfinite(P).all(-1)
+    vis = _seen(P)
     full = np.flatnonzero(vis.all(1))
     if full.size == 0:
         return Basis(empty, False, f"no frame sees all {N} points of the group together")
-    idx = full[np.unique(np.linspace(0, full.size - 1, min(n_ref, full.size)).round().astype(int))]
-    X = P[idx] - P[idx].mean(1, keepdims=True)
+    # n_ref positions spread over the complete frames (np.linspace's, without its overhead);
+    # spacing >= 1 between them: rounded, they stay distinct
+    K = min(n_ref, full.size)
+    pos = np.zeros(1)
+    if K > 1:
+        pos = np.arange(K) * ((full.size - 1) / (K - 1))
+        pos[-1] = full.size - 1
+    idx = full[pos.round().astype(int)]
+    Pi = P[idx]
+    X = Pi - Pi.sum(1, keepdims=True) / N
     ev = np.linalg.eigvalsh(np.matmul(np.swapaxes(X, 1, 2), X))  # (K, 3) ascending
     sv = np.sqrt(np.maximum(ev[:, ::-1], 0.0))  # singular values, descending
     s1 = np.where(sv[:, 0] > 0, sv[:, 0], np.nan)
-    if not np.isfinite(s1).any():
+    every = bool(np.isfinite(s1).all())
+    if not every and not np.isfinite(s1).any():
         return Basis(empty, False, "all points coincide", special=True)
-    r2 = np.nanmedian(sv[:, 1] / s1)
-    r3 = np.nanmedian(sv[:, 2] / s1)
-    ratios = np.array([r2, r3])
-    fref = int(idx[int(np.nanargmin(np.abs(sv[:, 1] / s1 - r2)))])
-    Xref = P[fref] - P[fref].mean(0)
+    rs = sv[:, 1:] / s1[:, None]
+    if every:  # the medians of both columns from one sort (np.median's result, without its overhead)
+        srt = np.sort(rs, axis=0)
+        ratios = srt[K // 2] if K % 2 else (srt[K // 2 - 1] + srt[K // 2]) / 2
+        r2, r3 = float(ratios[0]), float(ratios[1])
+        fref = int(idx[int(np.argmin(np.abs(rs[:, 0] - r2)))])
+    else:
+        r2, r3 = float(np.nanmedian(rs[:, 0])), float(np.nanmedian(rs[:, 1]))
+        ratios = np.array([r2, r3])
+        fref = int(idx[int(np.nanargmin(np.abs(rs[:, 0] - r2)))])
+    Pf = P[fref]
+    Xref = Pf - Pf.sum(0) / N
     if not r2 >= tol:
         dd = np.linalg.norm(Xref[:, None] - Xref[None], axis=-1)
         i, j = np.unravel_index(int(np.argmax(dd)), dd.shape)
         return Basis(empty, False, f"collinear points (s2/s1 = {r2:.2g} < {tol:g}): special group",
                      special=True, pair=np.array(sorted((int(i), int(j)))), ratios=ratios)
     _, svr, Vt = np.linalg.svd(Xref, full_matrices=False)
-    axes = np.stack([Vt[0], Vt[1], _cross(Vt[0], Vt[1])], axis=1)
-    s = float(np.sqrt((Xref**2).sum(1).mean()))
+    axes = _frame(Vt[0], Vt[1])
+    s = float(np.sqrt(np.einsum("ij,ij->", Xref, Xref) / N))
 
     out = np.full((F, 4, 3), np.nan)
     if full.size == F:
@@ -180,7 +216,7 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
     for vmask, fr in patterns:
         if vmask.sum() < 3:
             continue
-        co = _frame_coeffs(Xref, vmask, axes, s, tol)
+        co = _frame_coeffs(Xref, vmask, axes, s, tol, (svr, Vt) if vmask.all() else None)
         if co is None:
             continue
         G, beta = co
@@ -189,14 +225,18 @@ def mtb_basis(markers: ArrayLike, *, tol: float = COLLINEAR_TOL, n_ref: int = 25
             PV = PV[:, vmask]  # (f, nv, 3)
         if fr is None:
             fr = slice(None)
-        oV = PV.mean(1)
-        b12 = np.matmul(np.swapaxes(PV - oV[:, None], 1, 2), G)  # (f, 3, 2)
-        b3 = _cross(b12[:, :, 0], b12[:, :, 1])
-        Bf = np.concatenate([b12, b3[:, :, None]], axis=2)  # (f, 3, 3), columns b1 b2 b3
-        origin = oV + Bf @ beta[0]
-        out[fr, 0] = origin
-        out[fr, 1:] = origin[:, None, :] + np.swapaxes(Bf @ beta[1:].T, 1, 2)
-    cov = float(np.isfinite(out).all((1, 2)).mean()) if F else 0.0
+        oV = PV.sum(1) / PV.shape[1]
+        Bf = np.empty((oV.shape[0], 3, 3))  # columns b1 b2 b3
+        Bf[:, :, :2] = np.matmul(np.swapaxes(PV - oV[:, None], 1, 2), G)
+        Bf[:, :, 2] = _cross(Bf[:, :, 0], Bf[:, :, 1])
+        # the origin o_V + B beta[0], then the axis tips origin + B beta[k]
+        coef = beta.copy()
+        coef[1:] += beta[0]
+        out[fr] = _basis_points(Bf, oV, coef)
+    if full.size == F and np.isfinite(out[:, 0, 0]).all():  # one pattern, every frame placed
+        cov = 1.0
+    else:
+        cov = float(np.isfinite(out).all((1, 2)).mean()) if F else 0.0
     return Basis(out, True, "", False, None, ratios, bool(r3 < tol), cov)
 
 
@@ -209,23 +249,35 @@ def _linear_start(o: np.ndarray, E: np.ndarray, pts: np.ndarray, valid: np.ndarr
     Returns (lambda (3,), singular values (3,) of the centred system, and the
     norm of the uncentred one, for judging the rank).
     """
-    v = np.where(valid[..., None], o[:, None, :] - pts, 0.0)  # (F, M, 3)
+    F = pts.shape[0]
+    every = bool(valid.all())
+    v = o[:, None, :] - pts if every else np.where(valid[..., None], o[:, None, :] - pts, 0.0)  # (F, M, 3)
     x = 2.0 * np.matmul(v, E)  # (F, M, 3): E^T v per point
-    y = -np.einsum("fmi,fmi->fm", v, v)
-    n = valid.sum(0)
-    w = np.where(n > 0, 1.0 / np.maximum(n, 1), 0.0)
-    wv = np.where(valid, w, 0.0)
-    xbar = (wv[..., None] * x).sum(0)
-    ybar = (wv * y).sum(0)
-    sw = np.sqrt(wv)
-    ref = float(np.sqrt((wv[..., None] * x * x).sum()))
-    X = (sw[..., None] * (x - xbar)).reshape(-1, 3)
-    Y = (sw * (y - ybar)).reshape(-1)
+    y = -_sqnorm(v)
+    if every:  # every point seen in every frame: weight 1/F each
+        xbar = x.sum(0) / F
+        ybar = y.sum(0) / F
+        sw = np.sqrt(1.0 / F)
+        ref = float(np.sqrt(np.einsum("fmi,fmi->", x, x) / F))
+        X = (sw * (x - xbar)).reshape(-1, 3)
+        Y = (sw * (y - ybar)).reshape(-1)
+    else:
+        n = valid.sum(0)
+        w = np.where(n > 0, 1.0 / np.maximum(n, 1), 0.0)
+        wv = np.where(valid, w, 0.0)
+        xbar = (wv[..., None] * x).sum(0)
+        ybar = (wv * y).sum(0)
+        sw = np.sqrt(wv)
+        ref = float(np.sqrt((wv[..., None] * x * x).sum()))
+        X = (sw[..., None] * (x - xbar)).reshape(-1, 3)
+        Y = (sw * (y - ybar)).reshape(-1)
     N = X.T @ X
     ev, V = np.linalg.eigh(N)  # ascending
     svals = np.sqrt(np.maximum(ev[::-1], 0.0))
     keep = ev > 1e-13 * max(ev[-1], 1e-300) if ev[-1] > 0 else np.zeros(3, bool)
-    lam = V[:, keep] @ ((V[:, keep].T @ (X.T @ Y)) / ev[keep])  # minimum-norm least squares
+    if not keep.all():
+        V, ev = V[:, keep], ev[keep]
+    lam = V @ ((V.T @ (X.T @ Y)) / ev)  # minimum-norm least squares
     return lam, svals, ref
 
 
@@ -279,42 +331,45 @@ def mtb_joint(
         raise ValueError(f"basis_markers must be ({F}, 4, 3), got {B.shape}")
     alpha = float(alpha)
     nan = np.full((F, 3), np.nan)
-    bok = np.isfinite(B).all((1, 2))
-    valid = np.isfinite(pts).all(-1) & bok[:, None]
+    bok = np.isfinite(np.einsum("fki->f", B))  # all four basis points seen
+    valid = _seen(pts) & bok[:, None]
     if not valid.any():
         return JointFit(nan, np.inf, 0, False, "no frame sees the basis together with a marker")
     o = B[:, 0]
     E = np.swapaxes(B[:, 1:] - o[:, None, :], 1, 2)  # (F, 3, 3), columns = axes
-    o = np.where(bok[:, None], o, 0.0)
-    E = np.where(bok[:, None, None], E, 0.0)
+    all_b = bool(bok.all())
+    if not all_b:
+        o = np.where(bok[:, None], o, 0.0)
+        E = np.where(bok[:, None, None], E, 0.0)
 
-    informative = valid
-    if basis_side is not None:
+    if basis_side is None:
+        lam, svals, ref = _linear_start(o, E, pts, valid)
+    else:
         if basis_side not in ("a", "b"):
             raise ValueError(f"basis_side must be 'a', 'b' or None, got {basis_side!r}")
         na = np.asarray(markers_a).shape[1]
-        informative = valid.copy()
-        informative[:, :na] = basis_side == "b"
-        informative[:, na:] = basis_side == "a"
-        informative &= valid
-        if not informative.any():
+        other = slice(na, M) if basis_side == "a" else slice(0, na)
+        if not valid[:, other].any():
             return JointFit(nan, np.inf, 0, False, "no point of the other group is seen with the basis")
-    lam, svals, ref = _linear_start(o, E, pts, informative)
+        lam, svals, ref = _linear_start(o, E, pts[:, other], valid[:, other])
     ranked = svals[0] > 1e-9 * ref and svals[2] >= rank_tol * svals[0]
-    scale = float(np.sqrt(np.einsum("fij,fij->f", E, E)[bok].mean() / 3.0))  # basis size
+    if all_b:  # basis size
+        scale = float(np.sqrt(np.einsum("fij,fij->", E, E) / (3.0 * F)))
+    else:
+        scale = float(np.sqrt(np.einsum("fij,fij->f", E[bok], E[bok]).mean() / 3.0))
 
     c = o + E @ lam
-    q, d, diff, _, dbar, used = _cost_terms(c, pts, valid, alpha)
-    n = valid.sum(0)
-    k = max(int(used.sum()), 1)
-    w = np.where(used, 1.0 / (k * np.maximum(n, 1)), 0.0)
-    wv = np.where(valid, w, 0.0)
+    q, d, diff, n, dbar, used = _cost_terms(c, pts, valid, alpha)
     const = alpha * alpha / 4.0
     mu = 1e-4
     it = 0
     # an exact fit (noise-free data): distances constant to ~1e-12 relative
-    tiny = (1e-12 * max(scale, float(np.nanmax(np.where(used, dbar, 0.0))))) ** 2
+    tiny = (1e-12 * max(scale, float(np.max(dbar if used.all() else np.where(used, dbar, 0.0))))) ** 2
     converged = q - const <= tiny
+    if not converged:
+        k = max(int(used.sum()), 1)
+        w = np.where(used, 1.0 / (k * np.maximum(n, 1)), 0.0)
+        wv = np.where(valid, w, 0.0)
     while not converged and it < max_iter:
         it += 1
         u = diff / np.maximum(d, 1e-300)[..., None]
@@ -346,7 +401,7 @@ def mtb_joint(
             if mu > 1e16:
                 converged = True  # no descent left: at a minimum to rounding
                 break
-    centre = np.where(bok[:, None], c, np.nan)
+    centre = c if all_b else np.where(bok[:, None], c, np.nan)
     radii = np.where(used, dbar, np.nan)
     if not ranked and alpha == 0.0:
         return JointFit(centre, q, it, False,

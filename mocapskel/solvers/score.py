@@ -19,7 +19,7 @@ Given the pose ``(R_f, t_f)`` of two segments in every frame ``f`` (a point
 - :func:`score_hinge` — the hinge centre: the point on the SARA axis closest
   to the centroid of the markers of both segments.
 - :func:`score_from_markers` — per-frame poses from two marker groups by a
-  small batched Kabsch, then :func:`score`.
+  batched rigid fit (:func:`~.rigid.shape_poses`), then :func:`score`.
 
 Conditioning. Divided by the total weight, the normal matrix is
 ``[[I, -M], [-M^T, I]]`` with ``M = mean_f R1_f^T R2_f``; its eigenvalues are
@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rigid import kabsch
+from .rigid import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, shape_poses
 
 __all__ = ["ScoreFit", "SaraFit", "score", "score_hinge", "sara", "score_from_markers"]
 
@@ -201,7 +201,7 @@ class SaraFit:
 
 @dataclass(frozen=True, eq=False)
 class _System:
-    R1: np.ndarray  # (F, 3, 3), zeros where invalid
+    R1: np.ndarray  # (F, 3, 3) as given (NaN possible where invalid)
     t1: np.ndarray
     R2: np.ndarray
     t2: np.ndarray
@@ -211,10 +211,8 @@ class _System:
     vec: np.ndarray  # (6, 6) eigenvectors (columns)
     rhs: np.ndarray  # (6,)
     sv: np.ndarray  # (6,) singular values, descending
-
-    @property
-    def n(self) -> int:
-        return int(self.valid.sum())
+    M: np.ndarray  # (3, 3) sum_f w R1^T R2
+    n: int  # number of valid frames
 
     @property
     def cond(self) -> float:
@@ -247,39 +245,56 @@ def _system(R1, t1, R2, t2, weights) -> _System:
     F = R1.shape[0]
     # fast path: a finite grand total says every entry is finite
     if np.isfinite(R1.sum() + t1.sum() + R2.sum() + t2.sum() + w.sum()):
-        valid = np.ones(F, dtype=bool)
-    else:
-        valid = (
-            np.isfinite(R1).all((1, 2))
-            & np.isfinite(t1).all(1)
-            & np.isfinite(R2).all((1, 2))
-            & np.isfinite(t2).all(1)
-            & np.isfinite(w)
-        )
-        R1 = np.where(valid[:, None, None], R1, 0.0)
-        R2 = np.where(valid[:, None, None], R2, 0.0)
-        t1 = np.where(valid[:, None], t1, 0.0)
-        t2 = np.where(valid[:, None], t2, 0.0)
-    valid &= w > 0
-    w = np.where(valid, w, 0.0)
-    W = w.sum()
-    if not W > 0:
+        valid = np.ones(F, dtype=bool) if weights is None else w > 0
+    else:  # the frames with finite translations and weight, then the rotations among them
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(np.einsum("fi->f", t1) + np.einsum("fi->f", t2) + w) & (w > 0)
+    for _ in range(2):
+        n = int(np.count_nonzero(valid))
+        if n == F:
+            R1v, t1v, R2v, t2v, wv = R1, t1, R2, t2, w
+        else:
+            idx = np.flatnonzero(valid)
+            R1v, t1v, R2v, t2v, wv = (np.take(a, idx, axis=0) for a in (R1, t1, R2, t2, w))
+        if np.isfinite(R1v.sum() + R2v.sum()):
+            break
+        with np.errstate(invalid="ignore"):
+            valid &= np.isfinite(np.einsum("fi->f", R1.reshape(F, 9)) + np.einsum("fi->f", R2.reshape(F, 9)))
+    if n == 0:
         z = np.zeros(6)
-        return _System(R1, t1, R2, t2, w, valid, z, np.eye(6), z, z)
-    w = w / W
-    # sums over frames as BLAS products of (3F, 3) stacks
-    A1 = (R1 * w[:, None, None]).reshape(3 * F, 3)
-    d = (t2 - t1).reshape(3 * F)
-    M = A1.T @ R2.reshape(3 * F, 3)  # sum_f w R1^T R2
-    g1 = A1.T @ d  # sum_f w R1^T (t2 - t1)
-    g2 = R2.reshape(3 * F, 3).T @ (w[:, None] * (t2 - t1)).reshape(3 * F)
+        return _System(R1, t1, R2, t2, np.zeros(F), valid, z, np.eye(6), z, z, np.zeros((3, 3)), 0)
+    d = (t2v - t1v).reshape(3 * n)
+    A1 = R1v.reshape(3 * n, 3)
+    B2 = R2v.reshape(3 * n, 3)
+    if weights is None:  # unit weights: plain sums, divided by n
+        M, g1, g2 = _tdot(A1, B2) / n, _tdot(A1, d) / n, _tdot(B2, d) / n
+        wn = valid / n
+    else:
+        wv = wv / wv.sum()
+        wd = np.repeat(wv, 3)
+        M = _tdot(A1 * wd[:, None], B2)  # sum_f w R1^T R2
+        g1 = _tdot(A1, wd * d)  # sum_f w R1^T (t2 - t1)
+        g2 = _tdot(B2, wd * d)  # sum_f w R2^T (t2 - t1)
+        wn = np.zeros(F)
+        wn[valid] = wv
     N = np.eye(6)
     N[:3, 3:] = -M
     N[3:, :3] = -M.T
     rhs = np.concatenate([g1, -g2])
     lam, vec = np.linalg.eigh(N)
     sv = np.sqrt(np.clip(lam, 0.0, None))[::-1]
-    return _System(R1, t1, R2, t2, w, valid, lam, vec, rhs, sv)
+    return _System(R1, t1, R2, t2, wn, valid, lam, vec, rhs, sv, M, n)
+
+
+def _tdot(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A.T @ B for tall A (k, m) and B (k,) or (k, n), summed over pieces of rows (see rigid._SMALL_PRODUCT)."""
+    rows = _SMALL_GEMV // A.shape[1] if B.ndim == 1 else _SMALL_PRODUCT // (A.shape[1] * B.shape[1])
+    if A.shape[0] <= rows:
+        return A.T @ B
+    out = A[:rows].T @ B[:rows]
+    for lo in range(rows, A.shape[0], rows):
+        out += A[lo : lo + rows].T @ B[lo : lo + rows]
+    return out
 
 
 def _truncated(sy: _System, drop: int) -> np.ndarray:
@@ -288,19 +303,13 @@ def _truncated(sy: _System, drop: int) -> np.ndarray:
     return vec @ ((vec.T @ sy.rhs) / lam)
 
 
-def _rotate(R: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """R[f] @ x (x (3,) or (F, 3)) for all frames, by columns (faster than einsum for 3x3)."""
-    if x.ndim == 1:
-        return R[:, :, 0] * x[0] + R[:, :, 1] * x[1] + R[:, :, 2] * x[2]
-    return R[:, :, 0] * x[:, 0:1] + R[:, :, 1] * x[:, 1:2] + R[:, :, 2] * x[:, 2:3]
-
-
 def _images(sy: _System, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lab positions of local points p1 (segment 1) and p2 (segment 2), NaN where invalid."""
     q1 = _rotate(sy.R1, p1) + sy.t1
     q2 = _rotate(sy.R2, p2) + sy.t2
-    q1[~sy.valid] = np.nan
-    q2[~sy.valid] = np.nan
+    if sy.n < sy.valid.size:
+        q1[~sy.valid] = np.nan
+        q2[~sy.valid] = np.nan
     return q1, q2
 
 
@@ -340,15 +349,15 @@ def _finish(
     c1, c2 = x[:3].copy(), x[3:].copy()
     q1, q2 = _images(sy, c1, c2)
     diff = q1 - q2
-    residual = np.sqrt(np.einsum("fi,fi->f", diff, diff))
-    rms = float(np.sqrt(np.sum(sy.w[sy.valid] * residual[sy.valid] ** 2)))
+    r2 = np.einsum("fi,fi->f", diff, diff)
+    rms = float(np.sqrt(np.dot(sy.w, np.where(sy.valid, r2, 0.0) if sy.n < sy.valid.size else r2)))
     if axis is None:
         a1 = a2 = np.full(3, np.nan)
     else:
         a1 = axis[:3] / np.linalg.norm(axis[:3])
         a2 = axis[3:] / np.linalg.norm(axis[3:])
     return ScoreFit(
-        c1=c1, c2=c2, centre=0.5 * (q1 + q2), residual=residual, rms=rms, cond=sy.cond,
+        c1=c1, c2=c2, centre=0.5 * (q1 + q2), residual=np.sqrt(r2), rms=rms, cond=sy.cond,
         axis_ratio=sy.axis_ratio, singular_values=sy.sv, hinge=hinge, axis1=a1, axis2=a2,
         n_frames=sy.n, ok=ok, reason=reason, markers1=markers1, markers2=markers2,
     )
@@ -367,14 +376,17 @@ def _hinge_solution(sy: _System, markers1: np.ndarray, markers2: np.ndarray) -> 
         return "no finite marker position to place the centre on the hinge axis"
     m1 = markers1[ok1].mean(0) if k1 else np.zeros(3)
     m2 = markers2[ok2].mean(0) if k2 else np.zeros(3)
-    g1, g2 = _images(sy, m1, m2)
-    g = (k1 * g1 + k2 * g2) / (k1 + k2)  # lab centroid of all markers
-    p1, p2 = _images(sy, x0[:3], x0[3:])
-    p0 = 0.5 * (p1 + p2)
-    u = 0.5 * (_rotate(sy.R1, v[:3]) + _rotate(sy.R2, v[3:]))[sy.valid]
-    wv = sy.w[sy.valid]
-    den = np.sum(wv * np.einsum("fi,fi->f", u, u))
-    alpha = np.sum(wv * np.einsum("fi,fi->f", u, (g - p0)[sy.valid])) / den
+    # alpha = sum_f w u.(g - p0) / sum_f w |u|^2 with u = (R1 v1 + R2 v2) / 2 the lab axis, g the lab
+    # centroid of all markers and p0 the lab image of x0; all linear in the poses, so the sums over
+    # frames come from the system's: sum w R^T R = I, M = sum w R1^T R2, g1, g2 = sum w R^T (t2 - t1)
+    v1, v2 = v[:3], v[3:]
+    b2 = k2 / (k1 + k2) - 0.5  # weight of t2 (and minus that of t1) in g - p0
+    a1 = k1 / (k1 + k2) * m1 - 0.5 * x0[:3]
+    a2 = k2 / (k1 + k2) * m2 - 0.5 * x0[3:]
+    M, g1, g2 = sy.M, sy.rhs[:3], -sy.rhs[3:]
+    num = 0.5 * (v1 @ a1 + v1 @ M @ a2 + v2 @ M.T @ a1 + v2 @ a2 + b2 * (v1 @ g1 + v2 @ g2))
+    den = 0.25 * (v1 @ v1 + v2 @ v2 + 2.0 * v1 @ M @ v2)
+    alpha = num / den
     return x0 + alpha * v, v
 
 
@@ -570,14 +582,19 @@ def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.nda
     F, K, _ = P.shape
     if K < 3:
         return f"group {name} has {K} marker(s): at least 3 non-collinear markers are needed for its rotation"
-    complete = np.flatnonzero(np.isfinite(P.reshape(F, 3 * K).sum(1)))
-    if complete.size == 0:
+    first = -1
+    for lo in range(0, F, 1024):  # the first complete frame, usually among the first few
+        complete = np.isfinite(np.einsum("fki->f", P[lo : lo + 1024]))
+        if complete.any():
+            first = lo + int(np.argmax(complete))
+            break
+    if first < 0:
         return f"group {name}: no frame where all its {K} markers are seen (needed for the reference shape)"
-    ref = P[complete[0]] - P[complete[0]].mean(0)
+    ref = P[first] - P[first].mean(0)
     lam = np.linalg.eigvalsh(ref.T @ ref)
     if not (lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]):
         return f"group {name}: its markers are collinear, so its rotation about their line is undetermined"
-    R, t, _ = kabsch(ref, P)
+    R, t = shape_poses(ref, P)
     return R, t, ref
 
 

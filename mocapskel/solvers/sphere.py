@@ -234,34 +234,39 @@ def _marker_sums(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarr
     n = x.shape[0]
     if n == 0:
         return 0.0, np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0
-    origin = x[: min(n, 1024)].mean(0)  # provisional; corrected exactly below
-    z = np.empty((5, n))  # rows: 1, y (3), |y|^2 -- row-major for fast BLAS
-    z[0] = 1.0
-    y = z[1:4]
-    np.subtract(x.T, origin[:, None], out=y)
-    np.einsum("ij,ij->j", y, y, out=z[4])
-    g = z @ z.T
-    s1 = g[0, 1:4]
-    s2 = g[1:4, 1:4]
-    s3 = g[1:4, 4]
-    s4 = g[4, 4]
+    m = _sums(x[None])
+    return float(n), m.mean[0], m.M2[0], m.T[0], float(m.Q[0])
+
+
+def _sums(X: np.ndarray) -> _Moments:
+    """Central sums of K markers with the same n >= 1 finite samples each, X (K, n, 3)."""
+    K, n, _ = X.shape
+    origin = X[:, : min(n, 1024)].mean(1)  # provisional; corrected exactly below
+    z = np.empty((K, 5, n))  # rows: 1, y (3), |y|^2 -- row-major for fast BLAS
+    z[:, 0] = 1.0
+    y = z[:, 1:4]
+    np.subtract(np.swapaxes(X, 1, 2), origin[:, :, None], out=y)
+    np.einsum("kij,kij->kj", y, y, out=z[:, 4])
+    g = z @ np.swapaxes(z, 1, 2)
+    s1 = g[:, 0, 1:4]
+    nn = np.full(K, float(n))
     delta = s1 / n
-    _, M2, T, Q = _shift(
-        np.array([float(n)]), s1[None], s2[None], s3[None], np.array([s4]), delta[None]
-    )
-    return float(n), origin + delta, M2[0], T[0], float(Q[0])
+    _, M2, T, Q = _shift(nn, s1, g[:, 1:4, 1:4], g[:, 1:4, 4], g[:, 4, 4], delta)
+    return _Moments(n=nn, mean=origin + delta, M2=M2, T=T, Q=Q)
 
 
 def _moments(xs: Sequence[np.ndarray]) -> _Moments:
     """Central sums of every marker; xs are (n_p, 3) arrays, NaN rows dropped."""
+    xs = [_finite_rows(x) for x in xs]
     k = len(xs)
+    if k and xs[0].shape[0] and all(x.shape[0] == xs[0].shape[0] for x in xs):
+        return _sums(np.stack(xs))  # the common case: every marker seen in the same number of samples
     n = np.zeros(k)
     mean = np.zeros((k, 3))
     M2 = np.zeros((k, 3, 3))
     T = np.zeros((k, 3))
     Q = np.zeros(k)
     for p, x in enumerate(xs):  # loop over markers (few), never over samples
-        x = _finite_rows(x)
         n[p], mean[p], M2[p], T[p], Q[p] = _marker_sums(x)
     return _Moments(n=n, mean=mean, M2=M2, T=T, Q=Q)
 
