@@ -91,22 +91,33 @@ def test_structured_step_matches_dense_normal_equations():
     tree = ik._Tree(parent)
     inv = np.argsort(tree.perm)
     model = ik._Model(tree, origin[tree.perm], inv[seg], loc)
-    Rs = np.ascontiguousarray(perturb(rng, R[:, tree.perm], 5, 30).transpose(1, 0, 2, 3))
-    p = root + rng.normal(0, 20, (F, 3))
-    y = model.pack(x + rng.normal(0, 5, x.shape))
-    w = model.pack(rng.uniform(0.2, 2.0, x.shape[:2]) * (rng.random(x.shape[:2]) > 0.2))
-    e = rng.normal(0, 0.1, (S, F, 3))
+    # kernels' layout: component planes, frames last
+    Rs = np.ascontiguousarray(perturb(rng, R[:, tree.perm], 5, 30).transpose(2, 3, 1, 0))
+    p = (root + rng.normal(0, 20, (F, 3))).T.copy()
+    y, w = model.planes(x + rng.normal(0, 5, x.shape), rng.uniform(0.2, 2.0, x.shape[:2]) * (rng.random(x.shape[:2]) > 0.2))
+    e = rng.normal(0, 0.1, (3, S, F))
     st = model.stats(y, w)
-    G, P, c = model.cost(p, Rs, y, w)
+    c = model.cost(p, Rs, y, w)
     r = model.markers(p, Rs) - y
-    np.testing.assert_allclose(c, np.einsum("sfk,sfik->f", w, r * r), rtol=1e-12)
+    np.testing.assert_allclose(c, np.einsum("ksf,kisf->f", w, r * r), rtol=1e-12)
+    G, P = model.fk(p, Rs)
+    a = ik._c_mv(Rs, st["lbar"])
+    d = P + a - st["ybar"]
+    # the cost from the sums
+    c_st = (st["c0"] + st["W"] * ik._c_dot(d, d) - 2 * np.einsum("ijsf,ijsf->sf", Rs, st["Cc"])).sum(0)
+    np.testing.assert_allclose(c_st, c, rtol=1e-10)
     H, g = ik._dense_system(model, p, Rs, y, w, e, 7.0)
     want = -np.linalg.solve(H, g[..., None])[..., 0]
-    dp, dr, pred = model.step(Rs, G, P, st, e, 7.0, np.zeros(F), 0.0)
-    got = np.concatenate([dp[:, None], dr.transpose(1, 0, 2)], 1).reshape(F, -1)
+    dp, dr, pred = model.step(Rs, G, a, d, st, e, 7.0, np.zeros(F), 0.0)
+    got = np.concatenate([dp.T[:, None], dr.transpose(2, 1, 0)], 1).reshape(F, -1)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
     # the predicted decrease is that of the quadratic model
     np.testing.assert_allclose(pred, -(2 * np.einsum("fi,fi->f", g, got) + np.einsum("fi,fij,fj->f", got, H, got)))
+    # also for a damped step (the model is the undamped one)
+    dp, dr, pred = model.step(Rs, G, a, d, st, e, 7.0, rng.uniform(0, 3, F), 1e-3)
+    got = np.concatenate([dp.T[:, None], dr.transpose(2, 1, 0)], 1).reshape(F, -1)
+    np.testing.assert_allclose(pred, -(2 * np.einsum("fi,fi->f", g, got) + np.einsum("fi,fij,fj->f", got, H, got)))
+    assert np.all(pred > 0)
 
 
 def test_rotation_helpers():
@@ -432,3 +443,104 @@ def test_single_segment_single_frame_and_markerless_segment():
     _, x = forward(parent, origin, seg, loc, R, root)
     res = solve_ik(parent, origin, seg, loc, x)
     np.testing.assert_allclose(res.rot, R, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- active set, blocks, output
+
+
+def test_frames_leave_when_converged_with_the_answer_of_running_them_all():
+    rng = np.random.default_rng(17)
+    parent, origin, seg, loc = humanoid(rng)
+    F = 400
+    R, root = make_motion(rng, F, 15, amp=0.5)
+    P, x = forward(parent, origin, seg, loc, R, root)
+    obs = x + rng.normal(0, 1.0, x.shape)
+    obs[rng.random(obs.shape[:2]) < 0.2] = np.nan
+    # tol 0: every frame iterates until the linear model can no longer lower its cost
+    full = solve_ik(parent, origin, seg, loc, obs, iterations=20, tol=0.0)
+    assert full.converged.all() and full.n_iter >= 8
+    early = solve_ik(parent, origin, seg, loc, obs, iterations=20, tol=0.1)
+    assert early.converged.all() and early.n_iter <= 5
+    # the frames that left early are where running them all puts them
+    d = joint_error(early, parent, origin, seg, loc, forward(parent, origin, seg, loc, full.rot, full.root_pos)[0])
+    assert d.max() < 0.05 and np.sqrt(np.mean(d**2)) < 5e-3
+    # and as good against the truth
+    e_full = joint_error(full, parent, origin, seg, loc, P)
+    e_early = joint_error(early, parent, origin, seg, loc, P)
+    assert abs(np.sqrt(np.mean(e_early**2)) - np.sqrt(np.mean(e_full**2))) < 1e-3
+    np.testing.assert_allclose(np.nanmax(np.abs(early.residual - full.residual)), 0.0, atol=0.05)
+    # a tight tolerance converges to the same solution
+    tight = solve_ik(parent, origin, seg, loc, obs, iterations=30)
+    np.testing.assert_allclose(tight.rot, full.rot, atol=1e-6)
+
+
+def test_blocks_and_output_array_do_not_change_the_answer(monkeypatch):
+    rng = np.random.default_rng(18)
+    parent, origin, seg, loc = humanoid(rng)
+    F = 300
+    R, root = make_motion(rng, F, 15, amp=0.5)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    obs = x + rng.normal(0, 1.0, x.shape)
+    prior = perturb(rng, R, 0.5, 2)
+    one = solve_ik(parent, origin, seg, loc, obs, prior_rot=prior, init_root=root)
+    monkeypatch.setattr(ik, "_BLOCK", 64)  # several blocks, the last one short
+    many = solve_ik(parent, origin, seg, loc, obs, prior_rot=prior, init_root=root)
+    np.testing.assert_array_equal(many.rot, one.rot)
+    np.testing.assert_array_equal(many.root_pos, one.root_pos)
+    # written over the prior itself, which is read before it is overwritten
+    out = prior.copy()
+    res = solve_ik(parent, origin, seg, loc, obs, prior_rot=out, init_root=root, out=out)
+    assert res.rot is out
+    np.testing.assert_array_equal(res.rot, one.rot)
+    with pytest.raises(ValueError, match="out"):
+        solve_ik(parent, origin, seg, loc, obs, out=np.empty((F, 14, 3, 3)))
+
+
+# --------------------------------------------------------------------------- per-segment rigid poses
+
+
+def test_segment_poses_match_kabsch():
+    from mocapskel.solvers.rigid import kabsch
+
+    rng = np.random.default_rng(19)
+    F, Q = 500, 40
+    shapes, columns = [], []
+    for P in (3, 4, 7, 5, 60):  # the last one is handed to kabsch whole
+        cols = rng.choice(Q, size=min(P, Q), replace=False)
+        shapes.append(rng.normal(0, 80, (len(cols), 3)))
+        columns.append(cols)
+    shapes[1][3] = shapes[1][0] + 2 * (shapes[1][1] - shapes[1][0])  # collinear with points 0 and 1
+    shapes[2][2] = np.nan  # a reference point left out
+    rot = Rotation.random(F, random_state=rng).as_matrix()  # turns of any size
+    pts = np.full((F, Q, 3), np.nan)
+    for ref, cols in zip(shapes, columns):
+        seen = np.isfinite(ref).all(1)
+        pts[:, cols[seen]] = np.einsum("fij,pj->fpi", rot, ref[seen]) + rng.normal(0, 500, (F, 1, 3))
+    pts += rng.normal(0, 1.0, pts.shape)
+    pts[rng.random((F, Q)) < 0.3] = np.nan
+    pts[:5, columns[1][2]] = np.nan  # only collinear points (0, 1, 3) of shape 1 left in some frames
+    pts[:5, columns[1][1:3]] = np.nan
+    R, t = ik.segment_poses(shapes, columns, [pts[:, :25], pts[:, 25:]])  # two arrays side by side
+    for b, (ref, cols) in enumerate(zip(shapes, columns)):
+        Rk, tk, _ = kabsch(ref, pts[:, cols])
+        np.testing.assert_array_equal(np.isnan(R[:, b, 0, 0]), np.isnan(Rk[:, 0, 0]))
+        np.testing.assert_allclose(R[:, b], Rk, atol=1e-10)
+        np.testing.assert_allclose(t[:, b], tk, atol=1e-7)
+    assert np.isnan(R[:5, 1]).all() and np.isfinite(R[:, 0]).any()
+
+
+def test_stage_gap_fill_matches_slerp_fill():
+    from mocapskel.solvers.rotations import slerp_fill
+    from mocapskel.stages.ik import _fill_gaps
+
+    rng = np.random.default_rng(20)
+    F, S = 60, 3
+    rot = Rotation.random(F * S, random_state=rng).as_matrix().reshape(F, S, 3, 3)
+    ok = rng.random((F, S)) < 0.4
+    ok[:7, 1] = False  # a gap at the start
+    ok[-9:, 2] = False  # and at the end
+    ok[20, 0] = True
+    want = np.stack([slerp_fill(rot[:, s], ok[:, s]) for s in range(S)], 1)
+    got = np.where(ok[..., None, None], rot, np.nan)
+    _fill_gaps(got, ok)
+    np.testing.assert_allclose(got, want, atol=1e-12)
