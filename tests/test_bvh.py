@@ -270,10 +270,10 @@ def test_motion_numbers_are_exactly_printf(precision: int, values: list[float], 
     flat = np.array(values + extra + list(rng.normal(0, 10.0 ** rng.integers(-3, 6), 24)))
     blk = np.round(flat[: len(flat) // columns * columns].reshape(-1, columns), precision) + 0.0
     row = " ".join([f"%.{precision}f"] * columns) + "\n"
-    assert bvh_module._format_fixed(blk, precision) == (row * blk.shape[0]) % tuple(blk.ravel().tolist())
+    assert bvh_module._format_fixed(blk, precision) == ((row * blk.shape[0]) % tuple(blk.ravel().tolist())).encode()
     small = blk[np.abs(blk).max(axis=1) < 1e6]  # the numpy path (not the '%' fallback)
     if small.size:
-        assert bvh_module._format_fixed(small, precision) == (row * small.shape[0]) % tuple(small.ravel().tolist())
+        assert bvh_module._format_fixed(small, precision) == ((row * small.shape[0]) % tuple(small.ravel().tolist())).encode()
 
 
 # --------------------------------------------------------------------------- DESIGN rules
@@ -384,7 +384,7 @@ def test_failure_mid_write_leaves_no_file(tmp_path: Path, monkeypatch: pytest.Mo
     skel, root_pos, local_rot = _small()
 
     def failing_blocks(motion: np.ndarray, precision: int):
-        yield "1 2 3\n"
+        yield b"1 2 3\n"
         raise KeyboardInterrupt
 
     monkeypatch.setattr(bvh_module, "_motion_blocks", failing_blocks)
@@ -523,3 +523,98 @@ def test_lab_to_bvh_axes_and_units() -> None:
         lab_to_bvh(pts, "x", "cm")
     with pytest.raises(ValueError, match="units"):
         lab_to_bvh(pts, "y", "inch")
+
+
+# --------------------------------------------------------------------------- the fast writer against the plain one
+
+
+def _plain_bvh_text(skel: BvhSkeleton, root_pos: np.ndarray, local_rot: np.ndarray, frame_time: float) -> str:
+    """The text written the plain way: C-ordered arrays, '%.6f' per number (the writer's reference)."""
+    from mocapskel.solvers.rotations import matrix_to_euler, unwrap_euler
+
+    F, S = local_rot.shape[:2]
+    dfs = depth_first_order(skel.parent)
+    ang = unwrap_euler(matrix_to_euler(np.ascontiguousarray(local_rot), skel.order), skel.order)
+    motion = np.round(np.concatenate([root_pos, ang[:, dfs].reshape(F, 3 * S)], axis=1), 6) + 0.0
+    header = bvh_module._header(skel, dfs, F, frame_time, 6)
+    return header + "".join(" ".join("%.6f" % v for v in row) + "\n" for row in motion.tolist())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fast_writer_is_byte_identical_to_plain_formatting(tmp_path: Path, seed: int) -> None:
+    rng = np.random.default_rng(300 + seed)
+    S, F = int(rng.integers(2, 18)), int(rng.integers(1, 2500))
+    skel = _random_skeleton(rng, S, ORDERS[seed])
+    root_pos, local_rot = _random_motion(rng, F, S, smooth=seed != 1)
+    root_pos = root_pos * 10.0 ** rng.integers(-3, 4)  # mm to km: 1 to 7 integer digits
+    plain = _plain_bvh_text(skel, root_pos, local_rot, 1 / 120)
+    path = tmp_path / "fast.bvh"
+    write_bvh(path, skel, root_pos, local_rot, 1 / 120)
+    assert path.read_bytes() == plain.encode("ascii")
+    assert bvh_text(skel, root_pos, local_rot, 1 / 120) == plain
+    # and it reads back, by our reader and by bvhio, to the numbers written
+    back, rp, lr, _ = read_bvh(path)
+    np.testing.assert_allclose(rp, root_pos, atol=5e-7)
+    np.testing.assert_allclose(lr, local_rot[:, depth_first_order(skel.parent)], atol=1e-7)
+    theirs = _bvhio_world_positions(path, [0, F - 1])
+    ours = _fk_by_name(back, rp, lr)
+    for name, pos in theirs.items():
+        np.testing.assert_allclose(pos, ours[name][[0, F - 1]], atol=1e-3 * max(1.0, np.abs(root_pos).max() * 1e-4), err_msg=name)
+
+
+def test_writer_output_does_not_depend_on_memory_layout(tmp_path: Path) -> None:
+    rng = np.random.default_rng(7)
+    S, F = 9, 700
+    skel = _random_skeleton(rng, S)
+    root_pos, local_rot = _random_motion(rng, F, S)
+    want = bvh_text(skel, root_pos, local_rot, 0.01)
+    time_major = np.moveaxis(np.ascontiguousarray(np.moveaxis(local_rot, 0, -1)), -1, 0)
+    entry_major = np.moveaxis(np.ascontiguousarray(np.moveaxis(local_rot, (2, 3), (0, 1))), (0, 1), (2, 3))
+    strided = np.stack([local_rot, local_rot], axis=1)[:, 0]
+    for layout in (time_major, entry_major, np.asfortranarray(local_rot), strided):
+        np.testing.assert_array_equal(layout, local_rot)
+        assert bvh_text(skel, root_pos, layout, 0.01) == want
+
+
+@pytest.mark.parametrize("columns", [1, 2, 5])
+def test_six_decimals_fast_path_edge_values(columns: int) -> None:
+    """Precision 6 packs each number in two 64-bit words: integer parts of 0 to 7 digits, signs, carries."""
+    vals = [0.0, 1e-6, -1e-6, 0.5e-6, 0.9999995, -0.9999995, 9.9999995, 10.0, 99.999999, 100.0, 999.9999995, 1000.0,
+            12345.678901, -12345.678901, 999999.999999, 1000000.0, 9999999.999999, -9999999.999999, 9999999.9999996, 1e7,
+            -1e7, 123456789.5, 7.25, -0.000001, 3.1415926535]
+    flat = np.array(vals * columns)
+    blk = np.round(flat[: len(flat) // columns * columns].reshape(-1, columns), 6) + 0.0
+    row = " ".join(["%.6f"] * columns) + "\n"
+    want = ((row * blk.shape[0]) % tuple(blk.ravel().tolist())).encode()
+    assert bvh_module._format_fixed(blk, 6) == want
+    small = blk[np.abs(blk).max(axis=1) < 1e7]  # all through the packed path
+    assert bvh_module._format_fixed(small, 6) == ((row * small.shape[0]) % tuple(small.ravel().tolist())).encode()
+
+
+def test_lab_rot_to_bvh_is_the_signed_permutation_exactly() -> None:
+    rng = np.random.default_rng(8)
+    R = rotvec_to_matrix(rng.normal(size=(300, 6, 3)))
+    joints = np.array([3, 0, 5, 1, 2, 4])
+    for up in ("y", "z"):
+        C = bvh_module._axes(up)
+        want = C @ R @ C.T
+        got = lab_rot_to_bvh(R, up)
+        np.testing.assert_array_equal(got, want)
+        assert np.moveaxis(got, 0, -1).flags.c_contiguous  # frames innermost
+        np.testing.assert_array_equal(lab_rot_to_bvh(R, up, joints=joints), want[:, joints])
+        np.testing.assert_array_equal(bvh_rot_to_lab(got, up), R)
+        np.testing.assert_array_equal(lab_rot_to_bvh(R[0], up), want[0])  # one stack of matrices
+        np.testing.assert_array_equal(lab_rot_to_bvh(R[:0], up), want[:0])
+
+
+def test_global_to_local_rot_matches_matmul_in_any_layout() -> None:
+    rng = np.random.default_rng(9)
+    G = rotvec_to_matrix(rng.normal(size=(200, 7, 3)))
+    parent = np.array([3, -1, 1, 1, 3, 0, 5])  # any numbering
+    want = G.copy()
+    has = parent >= 0
+    want[:, has] = np.swapaxes(G[:, parent[has]], -1, -2) @ G[:, has]
+    for rot in (G, lab_rot_to_bvh(G, "z")):  # C order, frames innermost
+        got = global_to_local_rot(parent, rot)
+        np.testing.assert_allclose(got, want, rtol=0, atol=4e-16)
+        assert got.strides == rot.strides

@@ -53,7 +53,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     par = np.where(sk.parent[perm] >= 0, inv[np.maximum(sk.parent[perm], 0)], -1)
     offset = lab_to_bvh(sk.offset[perm], params.up, params.units)
     offset[par < 0] = 0.0
-    local = global_to_local_rot(par, lab_rot_to_bvh(motion.rot[:, perm], params.up))
+    local = global_to_local_rot(par, lab_rot_to_bvh(motion.rot, params.up, joints=perm))
     bskel = BvhSkeleton(
         names=tuple(sk.names[i] for i in perm),
         parent=par,
