@@ -16,7 +16,7 @@ from bench.common import run_isolated, table
 def human_cases(frames: int = 7200) -> str:
     rows = []
     cases = [("active ROM, 48 markers", ["--noise", "1", "--soft-tissue", "2", "--gaps", "4"], (1, 2, 3)),
-             ("active ROM, 2 markers/segment", ["--noise", "1", "--soft-tissue", "2", "--gaps", "4", "--mps", "2"], (1, 2))]
+             ("active ROM, 2 markers/segment", ["--noise", "1", "--soft-tissue", "2", "--gaps", "4", "--mps", "2"], (1, 2, 3))]
     for name, args, seeds in cases:
         for seed in seeds:
             r = run_isolated("fit_case", "--frames", str(frames), "--seed", str(seed), *args)
