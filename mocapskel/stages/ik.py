@@ -4,6 +4,14 @@ Started from per-segment Horn/Kabsch fits of markers and joint centres
 (gaps bridged by slerp), then refined jointly for the whole skeleton by a
 batched Gauss–Newton over all frames at once. Segments with 1–2 markers are
 held by their joints; gaps are filled by the skeleton.
+
+When some segment carries fewer than 3 markers, its rotation about the line
+of its markers is fixed only through its joints, and a start from the joints
+stage's centres (tens of mm off for such segments) leads IK to the wrong
+twist in many frames. Such a skeleton's refined poses (the rigid stage's
+``pose_frames``) are then the start instead: IK is solved coarse to fine in
+time from them (:func:`~mocapskel.solvers.calibrate.track`), each frame
+started and held by the slerp of the frames already solved around it.
 """
 from __future__ import annotations
 
@@ -13,10 +21,11 @@ import numpy as np
 
 from ..artifacts import Motion, Skeleton, markers_of
 from ..errors import DataError
+from ..solvers.calibrate import track
 from ..solvers.ik import segment_poses, solve_ik
 from ..solvers.rotations import matrix_to_rotvec, rotvec_to_matrix
 
-VERSION = 3
+VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -28,6 +37,9 @@ class Params:
     """A frame stops iterating once its pose is estimated to be within this (mm) of the
     solution (``solve_ik``'s ``tol``): joints end within a few hundredths of a millimetre
     of the fully converged solution, in 2-3 iterations from the Kabsch start."""
+    track_below: int = 3
+    """Skeletons with a segment of fewer markers than this are solved from the
+    rigid stage's refined poses, coarse to fine in time (when it has them); 0: never."""
 
 
 def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -111,6 +123,7 @@ def _edges(skel: Skeleton) -> np.ndarray:
 def solve(
     skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10,
     rate: float = 0.0, source: str = "", chunk: int = 2048, tol: float = Params.tol,
+    key_poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> Motion:
     """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``).
 
@@ -118,16 +131,24 @@ def solve(
     start, or None (the solver then starts from the markers alone). Stretches
     of ``chunk`` frames (from the start) where nothing is seen hold the
     nearest solved pose. ``tol`` (mm) is the solver's convergence tolerance.
+    key_poses : (frames (K,), rot (K, S, 3, 3), root_pos (K, 3)) poses known at
+    some frames: IK is then solved coarse to fine in time from them
+    (:func:`~mocapskel.solvers.calibrate.track`) and ``centres`` is not used.
     """
     if not np.isfinite(points).any():
         raise DataError("no marker is seen in any frame", source or None)
     F = points.shape[0]
-    kw = {}
-    if centres is not None:  # a start (and prior) from markers and joint centres, gaps bridged over the whole take
-        rot0, root0 = initial_pose(skel, points, centres)
-        kw = {"init_root": root0, "prior_rot": rot0, "out": rot0}  # the start is not needed after
-    res = solve_ik(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points, iterations=iterations, tol=tol, **kw)
-    rot, root_pos, resid = res.rot, res.root_pos, res.residual
+    if key_poses is not None:  # coarse to fine in time from known poses
+        kf, krot, kroot = key_poses
+        rot, root_pos, resid = track(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points,
+                                     kf, krot, kroot, iterations=iterations, chunk=chunk)
+    else:
+        kw = {}
+        if centres is not None:  # a start (and prior) from markers and joint centres, gaps bridged over the whole take
+            rot0, root0 = initial_pose(skel, points, centres)
+            kw = {"init_root": root0, "prior_rot": rot0, "out": rot0}  # the start is not needed after
+        res = solve_ik(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points, iterations=iterations, tol=tol, **kw)
+        rot, root_pos, resid = res.rot, res.root_pos, res.residual
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
         solved = np.ones(F, dtype=bool)
@@ -165,7 +186,12 @@ def run(skel: Skeleton, params: Params = Params()) -> Motion:
     # joint centres are per tree edge in the joints artifact's edge order; map to child segments
     if centres is not None:
         centres = _centres_by_edges(skel, centres)
-    return solve(skel, mk.points, centres, iterations=params.iterations, rate=mk.rate, source=mk.source, tol=params.tol)
+    key = None
+    counts = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(skel.names))
+    if skel.pose_frames is not None and (counts < params.track_below).any():
+        key = (skel.pose_frames, skel.pose_rot, skel.pose_root)
+    return solve(skel, mk.points, centres, iterations=params.iterations, rate=mk.rate, source=mk.source, tol=params.tol,
+                 key_poses=key)
 
 
 def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:
