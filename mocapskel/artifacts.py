@@ -112,6 +112,10 @@ class Joints:
     centres  : (F, E, 3) mm, NaN where the joint cannot be placed.
     method   : E method names ("jmv", "mtb", "sphere", "score", ...).
     residual : (E,) rms distance variation of markers to the joint (mm).
+    alt_centres : (F, E, 3) or None: a second start for the rigid stage, the
+               same centres with the JMV-placed joints taken from Hang's
+               framework instead (see the joints stage); None when no joint
+               was placed by JMV.
     """
 
     topology: Topology
@@ -119,6 +123,7 @@ class Joints:
     method: tuple[str, ...]
     residual: np.ndarray
     info: dict = field(default_factory=dict)
+    alt_centres: np.ndarray | None = None
     kind: ClassVar[str] = "joints"
 
 

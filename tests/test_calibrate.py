@@ -130,3 +130,21 @@ def test_ik_of_a_two_marker_skeleton_starts_from_the_refined_poses():
     err_t = evaluate.score_motion(tracked, take.truth).joint_rms_mm
     err_p = evaluate.score_motion(plain, take.truth).joint_rms_mm
     assert err_t < err_p and err_t < 15.0
+
+
+def test_rigid_stage_keeps_the_start_that_fits_better():
+    """JMV-placed joints: the refinement also starts from the framework's trajectories and keeps the lower residual."""
+    take = make(Recipe(kind="human", seed=6, frames=1500, markers_per_segment=2, noise_mm=1.0, soft_tissue_mm=2.0))
+    joints = pipeline.run_until(take.markers, "joints").artifact
+    assert "jmv" in joints.method and joints.alt_centres is not None
+    assert np.array_equal(np.isnan(joints.alt_centres[:, [e for e, m in enumerate(joints.method) if m != "jmv"]]),
+                          np.isnan(joints.centres[:, [e for e, m in enumerate(joints.method) if m != "jmv"]]))
+    skel = rigid.run(joints)
+    info = skel.info["refined"]
+    starts = info["marker_rms_mm_starts"]
+    assert info["marker_rms_mm_after"] == min(v for v in starts.values() if v is not None)
+    assert info["start"] in starts
+    one = rigid.run(replace(joints, alt_centres=None))
+    assert "start" not in one.info["refined"]
+    assert info["marker_rms_mm_after"] <= one.info["refined"]["marker_rms_mm_after"]
+    assert evaluate.score_motion(ik_stage.run(skel), take.truth).joint_rms_mm < 15.0

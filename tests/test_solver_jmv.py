@@ -9,7 +9,9 @@ from hypothesis import strategies as st
 from mocapskel.solvers.jmv import (
     JointFit,
     algebraic_init,
+    fixed_radius_centres,
     jmv_joint,
+    jmv_joint_long,
     joint_cost,
     joint_cost_grad,
     nearest_midpoint,
@@ -109,6 +111,42 @@ def test_jmv_two_markers_per_side_is_exact():
         assert fit and fit.reason == ""
         assert np.abs(fit.centre - take.truth.joints[:, 0]).max() < 1e-8
         assert fit.cost < 1e-20
+
+
+def test_jmv_long_fits_a_subsample_and_places_every_frame_exactly():
+    # <2-2>, noise-free, 900 frames fitted on 150: the radii, then every frame from them
+    take = hang_chain([2, 2], 900, rng=np.random.default_rng(5))
+    a, b = groups(take)
+    fit = jmv_joint_long(a, b, max_frames=150)
+    assert fit and np.isfinite(fit.centre).all()
+    assert np.abs(fit.centre - take.truth.joints[:, 0]).max() < 1e-7
+    truth_r = np.linalg.norm(np.concatenate([a, b], axis=1) - take.truth.joints[:, :1], axis=-1).mean(0)
+    np.testing.assert_allclose(fit.radii, truth_r, rtol=1e-9)
+    # a short take is fitted whole
+    short = jmv_joint_long(a[:100], b[:100], max_frames=150)
+    np.testing.assert_allclose(short.centre, jmv_joint(a[:100], b[:100]).centre)
+
+
+def test_fixed_radius_centres_from_a_rough_start():
+    take = hang_chain([2, 2], 200, rng=np.random.default_rng(6), noise=0.002)
+    a, b = groups(take)
+    pts = np.concatenate([a, b], axis=1)
+    truth = take.truth.joints[:, 0]
+    r = np.linalg.norm(pts - truth[:, None], axis=-1).mean(0)
+    start = truth + np.random.default_rng(0).normal(0, 0.05, truth.shape)  # 5 % of a link off
+    c = fixed_radius_centres(pts, r, start)
+    # each frame's least squares: a stationary point (the gradient of sum (d - r)^2 vanishes),
+    # the same as a much tighter run's, and close to the truth
+    d = np.linalg.norm(c[:, None] - pts, axis=-1)
+    g = np.einsum("fm,fmi->fi", d - r, (c[:, None] - pts) / d[..., None])
+    assert np.median(np.abs(g)) < 1e-9 and np.abs(g).max() < 1e-3
+    tight = fixed_radius_centres(pts, r, start, iterations=500, tol=1e-14)
+    cost = lambda x: ((np.linalg.norm(x[:, None] - pts, axis=-1) - r) ** 2).sum(1)  # noqa: E731
+    assert np.all(cost(c) <= cost(tight) * (1 + 1e-3) + 1e-15)
+    assert np.abs(c - tight).max() < 2e-3  # flat frames (four nearly coplanar points) end a little apart
+    assert np.sqrt(np.mean(np.sum((c - truth) ** 2, -1))) < 0.02
+    pts[3, :2] = np.nan  # two points left: no joint
+    assert np.isnan(fixed_radius_centres(pts, r, start)[3]).all()
 
 
 def test_algebraic_init_exact_for_four_points():

@@ -38,7 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["JointFit", "joint_cost", "joint_cost_grad", "jmv_joint", "pair_cost", "algebraic_init", "nearest_midpoint"]
+__all__ = ["JointFit", "joint_cost", "joint_cost_grad", "jmv_joint", "jmv_joint_long", "fixed_radius_centres", "pair_cost",
+           "algebraic_init", "nearest_midpoint"]
 
 #: Floor for distances when normalising directions (a joint exactly on a marker).
 _TINY = 1e-300
@@ -599,6 +600,108 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
         if converged:
             break
     return c, q, it, converged, np.where(used, dbar, np.nan)
+
+
+def fixed_radius_centres(
+    pts: np.ndarray, radii: np.ndarray, start: np.ndarray, *, iterations: int = 50, tol: float = 1e-9
+) -> np.ndarray:
+    """Every frame's joint at given distances from its points: ``min_c sum_m (|c - p_m| - r_m)^2``.
+
+    JMV with its radii known: the per-frame problems decouple, and each is a
+    3-unknown least squares solved by damped Gauss-Newton from ``start``,
+    vectorised over frames (a frame stops once its step is below ``tol``
+    times the radii's size).
+
+    Parameters
+    ----------
+    pts : (F, M, 3) ndarray
+        Points of both segments; NaN where not seen.
+    radii : (M,) ndarray
+        Distance of the joint from each point (NaN: point left out).
+    start : (F, 3) ndarray
+        Starting joints (e.g. a fit on a subsample, interpolated in time).
+
+    Returns
+    -------
+    (F, 3) ndarray
+        NaN where fewer than 3 points with a radius are seen, or the start is NaN.
+    """
+    pts = _as_points(pts, "pts")
+    F, M, _ = pts.shape
+    r = np.asarray(radii, dtype=float)
+    valid = _seen(pts) & np.isfinite(r)[None, :] & _seen(start)[:, None]
+    act = np.flatnonzero(valid.sum(1) >= 3)
+    out = np.full((F, 3), np.nan)
+    if act.size == 0:
+        return out
+    P = np.where(valid[act, :, None], pts[act], 0.0)
+    w = valid[act].astype(float)
+    rr = np.where(np.isfinite(r), r, 0.0)
+    c = start[act].copy()
+    size = float(np.nanmax(r)) if np.isfinite(r).any() else 1.0
+    mu = np.full(act.size, 1e-3)
+    live = np.arange(act.size)
+
+    def cost(cc, ix):
+        d = np.sqrt(_sqnorm(cc[:, None, :] - P[ix]))
+        return (w[ix] * (d - rr) ** 2).sum(1)
+
+    q = cost(c, live)
+    for _ in range(iterations):
+        diff = c[live, None, :] - P[live]
+        d = np.maximum(np.sqrt(_sqnorm(diff)), _TINY)
+        u = diff / d[..., None]
+        wl = w[live]
+        res = wl * (d - rr)
+        A = np.einsum("fm,fmi,fmj->fij", wl, u, u)
+        g = np.einsum("fm,fmi->fi", res, u)
+        damp = (mu[live] * np.maximum(np.trace(A, axis1=1, axis2=2) / 3.0, 1e-30))[:, None, None] * np.eye(3)
+        step = -np.einsum("fij,fj->fi", _inv3(A + damp), g)
+        cn = c[live] + step
+        qn = cost(cn, live)
+        better = qn <= q[live]
+        keep = live[better]
+        c[keep], q[keep] = cn[better], qn[better]
+        mu[keep] = np.maximum(mu[keep] / 3.0, 1e-12)
+        mu[live[~better]] *= 4.0
+        small = better & (np.abs(step).max(1) <= tol * size)
+        live = live[~small & (mu[live] < 1e12)]
+        if live.size == 0:
+            break
+    out[act] = c
+    return out
+
+
+def jmv_joint_long(
+    markers_a: ArrayLike, markers_b: ArrayLike, *, alpha: float = 0.0, max_frames: int = 1200, **kw
+) -> JointFit:
+    """:func:`jmv_joint` for long takes: the fit on ``max_frames`` frames spread over the take,
+    then every frame's joint from the fitted radii (:func:`fixed_radius_centres`).
+
+    Kirk's cost is a sum over frames of one per-frame term and the radii; its
+    radii come out of a spread subsample of 1200 frames within 1-2 mm of the
+    whole take's (2-marker segments of a noisy ROM take), at a sixth of the
+    cost for a minute at 120 Hz, and the per-frame joints then follow frame
+    by frame. Takes of at most ``max_frames`` frames are fitted whole.
+    ``cost`` and ``ok`` are the subsample fit's, ``radii`` its radii.
+    """
+    a = _as_points(markers_a, "markers_a")
+    b = _as_points(markers_b, "markers_b")
+    F = a.shape[0]
+    if F <= max_frames:
+        return jmv_joint(a, b, alpha=alpha, **kw)
+    idx = np.unique(np.linspace(0, F - 1, max_frames).round().astype(int))
+    fit = jmv_joint(a[idx], b[idx], alpha=alpha, **kw)
+    if fit.radii is None or not np.isfinite(fit.centre).any():
+        return jmv_joint(a, b, alpha=alpha, **kw)
+    good = np.isfinite(fit.centre).all(-1)
+    fr = np.arange(F)
+    start = np.stack([np.interp(fr, idx[good], fit.centre[good, k]) for k in range(3)], axis=1)
+    pts = _stack(a, b)
+    # the joint sits at rho = dbar - alpha / 2 from each point in Kirk's cost (the module notes)
+    centre = fixed_radius_centres(pts, fit.radii - alpha / 2.0, start)
+    centre[idx[good]] = fit.centre[good]
+    return JointFit(centre, fit.cost, fit.n_iter, fit.ok, fit.reason, None, fit.radii)
 
 
 # --------------------------------------------------------------------------- topology

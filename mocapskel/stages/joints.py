@@ -34,12 +34,12 @@ import numpy as np
 from ..artifacts import Joints, Topology
 from ..errors import DataError
 from ..solvers.hybrid import solve_tree
-from ..solvers.jmv import jmv_joint, joint_cost
+from ..solvers.jmv import jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 5
+VERSION = 6
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -61,6 +61,9 @@ class Params:
     hinge_min_sigma_mm: float = 0.1
     """...and only when SCoRE's standard error along the axis exceeds this (noise-free
     data fix even a near-hinge exactly)."""
+    jmv_frames: int = 1200
+    """JMV joints of longer takes are fitted on this many frames spread over the take,
+    every frame then placed from the fitted radii (``jmv_joint_long``)."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -108,6 +111,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             per_joint[e]["hinge"] = bool(fit.hinge)
             done[e] = True
     tree = None
+    alt_from_tree: list[int] = []  # JMV joints that the framework also placed
     if params.method == "auto":  # the rules measured in bench/joints.py (see the module docstring)
         for e, (a, b) in enumerate(edges):
             if done[e]:
@@ -119,7 +123,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     centres[:, e], methods[e], done[e] = c, "sphere", True
                     per_joint[e]["why"] = f"a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
                     continue
-            fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
@@ -127,6 +131,8 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             # Hang's framework may reach a lower joint cost (exact data): then it wins
             if tree is None:
                 tree = solve_tree(groups, edges, alpha=params.alpha)
+            if np.isfinite(tree.centres[:, e]).any():
+                alt_from_tree.append(e)
             both = np.concatenate([groups[a], groups[b]], axis=1)
             if np.isfinite(tree.centres[:, e]).any() and np.isfinite(fit.centre).any():
                 q_tree = joint_cost(tree.centres[:, e], both, alpha=0.0)
@@ -137,7 +143,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     per_joint[e].pop("note", None)
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
-            fit = jmv_joint(groups[a], groups[b], alpha=params.alpha)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
             centres[:, e] = fit.centre
             methods[e] = "jmv"
             if not fit.ok:
@@ -189,7 +195,17 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     if not np.isfinite(centres).any():
         raise DataError("no joint centre could be estimated", seg.markers.source or None)
     info = {"version": VERSION, "method": params.method, "per_joint": per_joint, "warnings": warnings}
-    return Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info)
+    alt = None
+    jmv_placed = [e for e in alt_from_tree if methods[e] == "jmv"]
+    if jmv_placed:
+        # JMV's joints are the closest frame by frame, but the framework's, propagated through
+        # rigid bodies, keep every segment's markers and joints rigid together: the better start
+        # for the skeleton's fit on most takes. The rigid stage tries both.
+        alt = centres.copy()
+        alt[:, jmv_placed] = tree.centres[:, jmv_placed]
+        info["alt_start"] = [int(e) for e in jmv_placed]
+    return Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
+                  alt_centres=alt)
 
 
 def _columns(pts: np.ndarray, idx: np.ndarray) -> np.ndarray:

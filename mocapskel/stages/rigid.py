@@ -19,7 +19,7 @@ from ..io.bvh import depth_first_order, sanitize_names
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 3
+VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,35 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
         rest = int(params.rest_frame)
         if not 0 <= rest < F:
             raise DataError(f"rest frame {rest} is outside the take's {F} frames — choose a frame from 0 to {F - 1}", mk.source or None)
+    skel = _fit(joints, joints.centres, rest, parent, parent_edge, order, params)
+    if params.refine_frames > 0:
+        skel = refine(skel, params, joints.centres)
+        if joints.alt_centres is not None and "refined" in skel.info:
+            # a second start (the joints stage's framework trajectories): the fit of lower cost wins
+            try:
+                alt = refine(_fit(joints, joints.alt_centres, rest, parent, parent_edge, order, params), params,
+                             joints.alt_centres)
+            except DataError:
+                alt = skel
+            a, b = skel.info["refined"]["marker_rms_mm_after"], alt.info.get("refined", {}).get("marker_rms_mm_after")
+            win = alt if b is not None and b < a else skel
+            info = dict(win.info)
+            info["refined"] = dict(info["refined"], start="framework" if win is alt else "joints",
+                                   marker_rms_mm_starts={"joints": a, "framework": b})
+            skel = replace(win, info=info)
+    return _with_lengths(skel)
 
+
+def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, parent_edge: np.ndarray,
+         order: np.ndarray, params: Params) -> Skeleton:
+    """Per-segment rigid fits of markers and joint ``centres`` (F, E, 3) into one skeleton (no refinement)."""
+    topo = joints.topology
+    seg = topo.segments
+    mk = seg.markers
+    pts = mk.points
+    F, M, _ = pts.shape
+    S = seg.n_segments
+    edges = topo.edges
     use = np.unique(np.concatenate([np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int), [rest]]))
     rest_i = int(np.searchsorted(use, rest))
     origin = np.full((S, 3), np.nan)
@@ -116,7 +144,7 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     for s in range(S):
         mids = seg.members(s)
         eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
-        obs = np.concatenate([pts[use][:, mids], joints.centres[use][:, eids]], axis=1)
+        obs = np.concatenate([pts[use][:, mids], centres[use][:, eids]], axis=1)
         shape, R, t, rms = procrustes_shape(obs, ref_frame=rest_i, iters=params.iters)
         if not np.isfinite(shape).all():
             shape = _fallback_shape(obs, rest_i, shape)
@@ -149,12 +177,10 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
         marker_local=marker_local, end_site=end_site, bone_length=bone_length, noise=noise,
         rest_frame=rest, labels=mk.labels, joints=joints, info=info,
     )
-    if params.refine_frames > 0:
-        skel = refine(skel, params)
-    return _with_lengths(skel)
+    return skel
 
 
-def refine(skel: Skeleton, params: Params) -> Skeleton:
+def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
     See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
@@ -169,7 +195,7 @@ def refine(skel: Skeleton, params: Params) -> Skeleton:
     if use.size < 10:
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))
-    centres = _centres_by_edges(skel, skel.joints.centres)
+    centres = _centres_by_edges(skel, skel.joints.centres if centres is None else centres)
     start = solve(skel, pts[use], centres[use])
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations)
