@@ -235,7 +235,10 @@ def solve_tree(
         for g, side in ((a, "a"), (b, "b")):
             bas, prop = basis_of(g)
             if bas is not None:
-                fits.append((mtb_joint(bas, pa, pb, alpha=alpha, basis_side=side), int(g), prop))
+                fit = mtb_joint(bas, pa, pb, alpha=alpha, basis_side=side)
+                fits.append((fit, int(g), prop))
+                if fit.ok and fit.n_iter == 0 and alpha == 0.0:
+                    break  # exact to rounding from its closed form: the other side can only agree
         if not fits:
             return None
         good = [f for f in fits if f[0].ok] or fits
