@@ -148,3 +148,26 @@ def test_rigid_stage_keeps_the_start_that_fits_better():
     assert "start" not in one.info["refined"]
     assert info["marker_rms_mm_after"] <= one.info["refined"]["marker_rms_mm_after"]
     assert evaluate.score_motion(ik_stage.run(skel), take.truth).joint_rms_mm < 15.0
+
+
+def test_refinement_holds_a_joint_along_the_axis_it_is_told(exact_two_marker):
+    take, exact = exact_two_marker
+    pts = take.markers.points
+    use = pick_frames(np.isfinite(pts).all(-1), 80, must=exact.rest_frame)
+    ref = int(np.searchsorted(use, exact.rest_frame))
+    c = int(np.flatnonzero(exact.parent >= 0)[3])
+    a = np.array([0.0, 0.6, 0.8])
+    bad = replace(exact, origin=exact.origin + np.where(np.arange(len(exact.names))[:, None] == c, 5.0 * a, 0.0))
+    start = ik_stage.solve(exact, pts[use], ik_stage._centres_by_edges(exact, exact.joints.centres)[use])
+
+    def along(res):  # the joint's offset from its parent's origin, along a, relative to the exact skeleton's
+        p = exact.parent[c]
+        return float(a @ ((res.origin[c] - res.origin[p]) - (exact.origin[c] - exact.origin[p])))
+
+    free = refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use], start.rot,
+                           start.root_pos, ref_frame=ref, iterations=100)
+    held = refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use], start.rot,
+                           start.root_pos, ref_frame=ref, iterations=100, hold_along={c: a})
+    assert abs(along(free)) < 0.05  # the data put it back
+    assert along(held) > 2.5  # held: it stays more than half way where it started
+    assert held.rms[1] > free.rms[1]  # the rms reported is the markers' alone, and holding costs some

@@ -223,6 +223,7 @@ def refine_skeleton(
     iterations: int = 30,
     tol: float = 1e-6,
     chunk: int = 128,
+    hold_along: dict[int, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -231,6 +232,10 @@ def refine_skeleton(
     rot, root_pos : (F, S, 3, 3), (F, 3) the starting poses (e.g. IK with the skeleton).
     ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.
     iterations, tol : Levenberg–Marquardt limits; stops when the cost falls by less than ``tol`` (relative).
+    hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints whose position
+        along that axis (relative to their parent's origin, ``a . d_c``) is held where it starts,
+        by a stiff penalty — hinges, whose centre the markers hardly fix along their axis, placed
+        there by the joints stage. The penalty weighs as much as all the markers together per mm.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -244,7 +249,15 @@ def refine_skeleton(
     l = np.array(marker_local, dtype=float)
     nf, ng = pr.nf, pr.ng
     W = max(pr.w.sum(), 1.0)
-    c0 = cost = pr.cost(p, R, d, l)
+    held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
+            if parent[int(c)] >= 0]
+    d0 = d.copy()
+    k_hold = float(max(pr.w.sum(), 1.0))  # mm^-2: a 1 mm move along a held axis costs as much as 1 mm on every marker
+
+    def total(p_, R_, d_, l_) -> float:
+        return pr.cost(p_, R_, d_, l_) + k_hold * sum(float(a @ (d_[c] - d0[c])) ** 2 for c, a in held)
+
+    c0 = cost = total(p, R, d, l)
     lam = 1e-4
     # gauge: the root's origin is fixed in the root by one of its joints (or markers)
     rk0 = [c for c in pr.kids if parent[c] == pr.root]
@@ -276,6 +289,10 @@ def refine_skeleton(
                     bf[i, 3:] = 0.0
                 Hfg[:, :, fix_g] = 0.0
                 blocks.append((Hff, Hfg, bf))
+            for c, a in held:
+                i = pr.gi[c]
+                Hgg[i : i + 3, i : i + 3] += k_hold * np.outer(a, a)
+                bg[i : i + 3] += k_hold * a * float(a @ (d[c] - d0[c]))
             Hgg[fix_g, :] = 0.0
             Hgg[:, fix_g] = 0.0
             Hgg[fix_g, fix_g] = 1.0
@@ -305,7 +322,7 @@ def refine_skeleton(
             l1 = l.copy()
             for m in pr.used:
                 l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
-            c1 = pr.cost(p1, R1, d1, l1)
+            c1 = total(p1, R1, d1, l1)
             if c1 < cost:
                 break
             lam *= 4.0
@@ -320,6 +337,7 @@ def refine_skeleton(
         lam = max(lam / 3.0, 1e-9)
         if rel < tol:
             break
+    cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
     R = R @ np.swapaxes(Q, -1, -2)[None]

@@ -36,6 +36,10 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
+    hold_hinges: bool = True
+    """Joints the joints stage placed as hinges keep their position along the hinge axis
+    in the refinement (the markers hardly fix it; the joints stage put it in the plane
+    of the neighbouring joints)."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -197,13 +201,45 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     ref = int(np.searchsorted(use, skel.rest_frame))
     centres = _centres_by_edges(skel, skel.joints.centres if centres is None else centres)
     start = solve(skel, pts[use], centres[use])
+    hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
-                          start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations)
+                          start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
+                          hold_along=hold)
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
-                       "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1]}
+                       "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],
+                       "hinges_held": [skel.names[c] for c in hold]}
     return replace(skel, origin=res.origin, marker_local=res.marker_local, info=info,
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
+
+
+def _hinge_axes(skel: Skeleton, rot: np.ndarray) -> dict[int, np.ndarray]:
+    """{child segment: hinge axis (rest-pose axes)} of the joints the joints stage placed as hinges.
+
+    The axis is the direction the relative rotations ``R_parent^T R_child`` of
+    ``rot`` (F, S, 3, 3) leave most nearly fixed: the eigenvector of SCoRE's
+    ``[[I, -M], [-M^T, I]]`` (``M`` their mean) of the smallest eigenvalue.
+    """
+    joints = skel.joints
+    per = joints.info.get("per_joint") or []
+    out = {}
+    for e, (a, b) in enumerate(joints.topology.edges):
+        if e >= len(per) or not per[e].get("hinge"):
+            continue
+        c = int(b) if skel.parent[int(b)] == int(a) else int(a)
+        p = int(skel.parent[c])
+        ok = np.isfinite(rot[:, p, 0, 0]) & np.isfinite(rot[:, c, 0, 0])
+        if ok.sum() < 10:
+            continue
+        M = (np.swapaxes(rot[ok, p], 1, 2) @ rot[ok, c]).mean(0)
+        N = np.eye(6)
+        N[:3, 3:] = -M
+        N[3:, :3] = -M.T
+        v = np.linalg.eigh(N)[1][:, 0]
+        axis = v[:3] + v[3:]
+        if np.linalg.norm(axis) > 0:
+            out[c] = axis / np.linalg.norm(axis)
+    return out
 
 
 def _with_lengths(skel: Skeleton) -> Skeleton:
