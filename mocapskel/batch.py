@@ -402,7 +402,8 @@ def cpu_count() -> int:
 def _thread_env(jobs: int) -> dict[str, str]:
     """Thread counts for the numerical libraries of ``jobs`` worker processes sharing the cores."""
     n = str(max(1, cpu_count() // max(1, jobs)))
-    return {k: n for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS") if k not in os.environ}
+    return {k: n for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "MOCAPSKEL_THREADS")
+            if k not in os.environ}
 
 
 @contextlib.contextmanager

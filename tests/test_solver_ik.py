@@ -494,6 +494,20 @@ def test_blocks_and_output_array_do_not_change_the_answer(monkeypatch):
     np.testing.assert_array_equal(res.rot, one.rot)
     with pytest.raises(ValueError, match="out"):
         solve_ik(parent, origin, seg, loc, obs, out=np.empty((F, 14, 3, 3)))
+    # blocks solved on several threads: the same answer, bit for bit
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "3")
+    threaded = solve_ik(parent, origin, seg, loc, obs, prior_rot=prior, init_root=root)
+    np.testing.assert_array_equal(threaded.rot, one.rot)
+    np.testing.assert_array_equal(threaded.residual, one.residual)
+    np.testing.assert_array_equal(threaded.converged, one.converged)
+    monkeypatch.setattr(ik, "_POSE_BLOCK", 64)
+    shapes = [origin[s] + loc[seg == s] for s in range(len(parent))]
+    cols = [np.flatnonzero(seg == s) for s in range(len(parent))]
+    Rt, tt = ik.segment_poses(shapes, cols, [obs])
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "1")
+    Rs, ts = ik.segment_poses(shapes, cols, [obs])
+    np.testing.assert_array_equal(Rt, Rs)
+    np.testing.assert_array_equal(tt, ts)
 
 
 # --------------------------------------------------------------------------- per-segment rigid poses

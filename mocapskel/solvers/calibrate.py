@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io.bvh import depth_first_order
+from ..parallel import run_blocks
 
 __all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
 
@@ -276,10 +277,9 @@ def refine_skeleton(
             Hgg = np.zeros((ng, ng))
             bg = np.zeros(ng)
             blocks = []
-            for sl in chunks:
+
+            def chunk_system(sl: slice):
                 Hff, Hfg, bf, Hgg_f, bg_f = pr.normal_equations(sl, p, R, d, l)
-                Hgg += Hgg_f
-                bg += bg_f
                 if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
                     i = ref_frame - sl.start
                     Hff[i, 3:, :] = 0.0
@@ -288,6 +288,11 @@ def refine_skeleton(
                     Hfg[i, 3:] = 0.0
                     bf[i, 3:] = 0.0
                 Hfg[:, :, fix_g] = 0.0
+                return Hff, Hfg, bf, Hgg_f, bg_f
+
+            for Hff, Hfg, bf, Hgg_f, bg_f in run_blocks(chunk_system, chunks):  # summed in chunk order
+                Hgg += Hgg_f
+                bg += bg_f
                 blocks.append((Hff, Hfg, bf))
             for c, a in held:
                 i = pr.gi[c]
@@ -303,14 +308,19 @@ def refine_skeleton(
             Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
             rhs = -bg.copy()
             Ys = []
-            for Hff, Hfg, bf in blocks:
+
+            def eliminate(block):
                 # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb
+                Hff, Hfg, bf = block
                 D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
                 Li = np.linalg.inv(np.linalg.cholesky(D))
                 Y = Li @ np.concatenate([Hfg, bf[..., None]], axis=2)
                 Yg = Y[..., :ng].reshape(-1, ng)
-                Sg -= Yg.T @ Yg
-                rhs += Yg.T @ Y[..., ng].reshape(-1)
+                return Li, Y, Yg.T @ Yg, Yg.T @ Y[..., ng].reshape(-1)
+
+            for Li, Y, YtY, Ytb in run_blocks(eliminate, blocks):  # summed in chunk order
+                Sg -= YtY
+                rhs += Ytb
                 Ys.append((Li, Y))
             dg = np.linalg.solve(Sg, rhs)
             df = np.concatenate([-(np.swapaxes(Li, 1, 2) @ (Y[..., ng] + Y[..., :ng] @ dg)[..., None])[..., 0] for Li, Y in Ys])

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..parallel import run_blocks
 from .rigid import kabsch
 
 __all__ = ["IKResult", "segment_poses", "solve_ik"]
@@ -1107,15 +1108,16 @@ def solve_ik(
     root_pos = np.empty((F, 3))
     res = np.full((F, M), np.nan)
     converged = np.zeros(F, dtype=bool)
-    n_iter = 0
-    for lo, hi in blocks:
+
+    def solve_block(block: tuple[int, int]) -> int:
+        """Solve frames lo:hi (blocks are independent: each reads and writes its own frames only)."""
+        lo, hi = block
         yk, wk = data(lo, hi)
         st = model.stats(yk, wk)
         Rp = _rotation_planes(R_prior, prior_perm, lo, hi)
         R = Rp if init_rot is None else _rotation_planes(init_rot, tree.perm, lo, hi)
         p = np.ascontiguousarray(p0[lo:hi].T)
         R, p, converged[lo:hi], it = _iterate(model, R, p, st, Rp, pw, int(iterations), damping, tol, floor, scale)
-        n_iter = max(n_iter, it)
         r = model.markers(p, R) - yk
         dist = model.unpack(np.sqrt(np.einsum("kisf,kisf->ksf", r, r)))
         res[lo:hi, used] = np.where(seen[lo:hi], dist, np.nan)
@@ -1123,6 +1125,9 @@ def solve_ik(
         for j in range(S):  # one strided copy per segment (faster than a gather and a transpose)
             rot[lo:hi, j] = Rs[inv[j]]
         root_pos[lo:hi] = p.T
+        return it
+
+    n_iter = max(run_blocks(solve_block, blocks), default=0)
     return IKResult(root_pos=root_pos, rot=rot, residual=res, n_iter=n_iter, converged=converged)
 
 
@@ -1325,7 +1330,8 @@ def segment_poses(
     R = np.empty((F, B, 3, 3))
     t = np.empty((F, B, 3))
     todo: list[tuple[int, np.ndarray]] = []
-    for lo in range(0, F, _POSE_BLOCK):
+
+    def block(lo: int) -> None:  # frames lo:hi (blocks read and write their own frames only)
         hi = min(lo + _POSE_BLOCK, F)
         X = np.empty((3, Q, hi - lo))
         c = 0
@@ -1363,6 +1369,12 @@ def segment_poses(
         for b in range(B):  # one strided copy per shape (faster than one transposing copy)
             R[lo:hi, b] = Rb[:, :, b].transpose(2, 0, 1)
         t[lo:hi] = tb.transpose(2, 1, 0)
+
+    starts = list(range(0, F, _POSE_BLOCK))
+    if starts:
+        block(starts[0])  # alone first: it makes the pattern tables that the threads then share
+        run_blocks(block, starts[1:])
+    todo.sort(key=lambda bf: (bf[0], int(bf[1][0])))  # the same order whatever the threads did
     todo += [(b, np.arange(F)) for b, lut in enumerate(luts) if lut is None]
     if todo:  # not certified by the fast path, or too many points: rigid.kabsch
         for b, fr in todo:

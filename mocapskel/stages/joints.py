@@ -33,6 +33,7 @@ import numpy as np
 
 from ..artifacts import Joints, Topology
 from ..errors import DataError
+from ..parallel import run_blocks
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses
@@ -89,20 +90,28 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     done = np.zeros(E, dtype=bool)
     hinges: dict[int, tuple] = {}
     if params.method in ("score", "auto"):
-        poses = [group_pose(g, str(s)) for s, g in enumerate(groups)]  # (R, t, reference shape) or a reason
-        for e, (a, b) in enumerate(edges):
+        # (R, t, reference shape) or a reason, every segment (independent: side by side on the cores)
+        poses = run_blocks(lambda sg: group_pose(sg[1], str(sg[0])), list(enumerate(groups)))
+
+        def score_edge(e: int):
+            a, b = edges[e]
             if isinstance(poses[a], str) or isinstance(poses[b], str):
-                continue
+                return None
             (R1, t1, ref1), (R2, t2, ref2) = poses[a], poses[b]
             fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=0.0)
             if fit.ok and fit.axis_ratio < params.hinge_ratio and along_axis_sigma(fit) > params.hinge_min_sigma_mm:
                 # hinge-like and the data leave the centre loose along the axis: place it on the axis
                 fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=1.0)
             if not fit.ok:
+                return None
+            return fit, centre_from_either_side(fit, poses[a], poses[b])
+
+        for e, got in enumerate(run_blocks(score_edge, range(E))):
+            if got is None:
                 continue
+            fit, centres[:, e] = got
             if fit.hinge:
-                hinges[e] = (fit, R1)
-            centres[:, e] = centre_from_either_side(fit, poses[a], poses[b])
+                hinges[e] = (fit, poses[edges[e][0]][0])
             methods[e] = "score-hinge" if fit.hinge else "score"
             per_joint[e]["why"] = (
                 "both segments have 3+ markers: SCoRE linear least squares"
