@@ -43,6 +43,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / f"take.{a.format}"
         write_markers(path, replace(take.markers, source=path.name))
+        truth, n_markers = take.truth, take.markers.n_markers
+        del take  # the fit starts from the file alone, as `mocapskel fit` does
         base_rss = peak_rss_mb()
         t = time.perf_counter()
         res = pipeline.fit(path, pipeline.make_params(joint_method=a.joint_method))
@@ -51,10 +53,10 @@ def main() -> None:
         write_bvh(Path(d) / "out.bvh", b.skeleton, b.root_pos, b.local_rot, b.frame_time)
         res.run.seconds["write"] = time.perf_counter() - t_w
         total = time.perf_counter() - t
-    sc = evaluate.score_motion(res.motion, take.truth)
-    sj = evaluate.score_joints(res.motion.skeleton.joints, take.truth)
+    sc = evaluate.score_motion(res.motion, truth)
+    sj = evaluate.score_joints(res.motion.skeleton.joints, truth)
     out = {
-        "frames": a.frames, "markers": take.markers.n_markers, "total_s": total,
+        "frames": a.frames, "markers": n_markers, "total_s": total,
         "seconds": {k: v for k, v in res.run.seconds.items() if k != "total"},
         "peak_rss_mb": peak_rss_mb(), "rss_before_fit_mb": base_rss,
         "segments_ok": sc.segments_ok, "topology_ok": sc.topology_ok,

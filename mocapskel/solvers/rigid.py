@@ -414,7 +414,7 @@ def procrustes_shape(
     point over the frames where it is seen and the frame could be aligned.
     Points missing from the start frame are thus filled in from other frames
     (frames sharing fewer than 3 points with the current shape join at a later
-    iteration). Finally the shape is moved rigidly onto the observation at
+    iteration; the alignments are :func:`shape_poses`). Finally the shape is moved rigidly onto the observation at
     ``ref_frame``, so that it is that frame's pose up to noise.
 
     Parameters
@@ -479,7 +479,7 @@ def procrustes_shape(
 
     shape = np.where(vis[start][:, None], obs[start], np.nan)
     for _ in range(max(int(iters), 1)):
-        R, t, _ = kabsch(shape, obs, collinear_tol=collinear_tol)
+        R, t = shape_poses(shape, obs, collinear_tol=collinear_tol)  # kabsch's poses, faster
         ok = np.isfinite(R[:, 0, 0])
         Rk, tk = R[ok], t[ok]
         # back into the shape's frame: R^T (obs - t)
