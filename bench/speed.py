@@ -12,8 +12,13 @@ import sys
 from bench.common import run_isolated, table
 
 
+def fit_args(frames: int, seed: int = 1) -> list[str]:
+    """The generator's arguments of the speed takes (bench.fit_case and bench.read_case take the same)."""
+    return ["--frames", str(frames), "--seed", str(seed), "--noise", "1", "--soft-tissue", "2", "--gaps", "4"]
+
+
 def fit(frames: int, seed: int = 1, mps: int | None = None, repeats: int = 1) -> dict:
-    args = ["--frames", str(frames), "--seed", str(seed), "--noise", "1", "--soft-tissue", "2", "--gaps", "4"]
+    args = fit_args(frames, seed)
     if mps:
         args += ["--mps", str(mps)]
     runs = [run_isolated("fit_case", *args) for _ in range(repeats)]
@@ -27,7 +32,7 @@ def main() -> None:
     rows = []
     for frames, reps in ((7200, 3), (60000, 1)):
         r = fit(frames, repeats=reps)
-        rd = run_isolated("read_case", "--frames", str(frames))
+        rd = run_isolated("read_case", *fit_args(frames))  # the same file as the fit's
         st = r["seconds"]
         rows.append([f"{frames} ({frames / 7200:.3g} min)", round(r["total_s"], 2), round(rd["read_s"], 2),
                      round(r["total_s"] / max(rd["read_s"], 1e-9), 1), round(r["peak_rss_mb"]),
