@@ -2,23 +2,27 @@
 
     python -m bench.fit_case --json --kind human --frames 7200 --seed 1 --noise 1 --soft-tissue 2 --gaps 4
 
-The take is generated and written to a temporary C3D first (not timed); then
-``fit`` runs from that file with no cache (read, all stages, BVH written).
+The take is generated and written to a temporary C3D first, in another
+process (neither timed nor in this process's peak memory); then ``fit`` runs
+from that file with no cache (read, all stages, BVH written).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from bench.common import peak_rss_mb
+from bench.common import REPO, peak_rss_mb
 from mocapskel import evaluate, pipeline
 from mocapskel.io.bvh import write_bvh
 from mocapskel.io.markers import write_markers
 from mocapskel.synth.presets import Recipe, make
+from mocapskel.synth.truth import Truth
 
 
 def main() -> None:
@@ -35,16 +39,24 @@ def main() -> None:
     ap.add_argument("--link-length", type=float, default=300.0)
     ap.add_argument("--format", default="c3d")
     ap.add_argument("--joint-method", default="auto")
+    ap.add_argument("--write", default=None, help=argparse.SUPPRESS)  # internal: generate into this folder, then stop
     a = ap.parse_args()
     rec = Recipe(kind=a.kind, seed=a.seed, frames=a.frames, noise_mm=a.noise, soft_tissue_mm=a.soft_tissue,
                  gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps,
                  counts=tuple(int(c) for c in a.counts.split("-")), link_length=a.link_length)
-    take = make(rec)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / f"take.{a.format}"
+    if a.write:
+        take = make(rec)
+        path = Path(a.write) / f"take.{a.format}"
         write_markers(path, replace(take.markers, source=path.name))
-        truth, n_markers = take.truth, take.markers.n_markers
-        del take  # the fit starts from the file alone, as `mocapskel fit` does
+        take.truth.save(Path(a.write) / "truth.npz")
+        return
+    with tempfile.TemporaryDirectory() as d:
+        # the take is generated in another process: this one's time and memory are the fit's alone,
+        # from the file, as `mocapskel fit` runs
+        subprocess.run([sys.executable, "-m", "bench.fit_case", *sys.argv[1:], "--write", d], check=True, cwd=REPO)
+        path = Path(d) / f"take.{a.format}"
+        truth = Truth.load(Path(d) / "truth.npz")
+        n_markers = int(truth.marker_segment.size)
         base_rss = peak_rss_mb()
         t = time.perf_counter()
         res = pipeline.fit(path, pipeline.make_params(joint_method=a.joint_method))
