@@ -285,3 +285,28 @@ def test_project_to_so3() -> None:
     out = project_to_so3(batch)
     assert out.shape == (2, 2, 3, 3) and np.isnan(out[1]).all()
     np.testing.assert_allclose(out[0], R[:2], atol=1e-12)
+
+
+def test_rotvec_and_quaternion_conversions_match_scipy() -> None:
+    """Against an independent implementation (scipy's Rotation), small angles, half-turns and nearly orthonormal input included."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(21)
+    axes = rng.normal(size=(400, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([rng.uniform(0, np.pi, 300), [0.0, 1e-12, 1e-7, 1e-4, 1e-3, 2e-3],
+                             np.pi - np.array([0.0, 1e-12, 1e-8, 1e-5]), rng.uniform(0, 1e-2, 90)])
+    v = axes * angles[:, None]
+    ref = Rotation.from_rotvec(v)
+    R = rotvec_to_matrix(v)
+    np.testing.assert_allclose(R, ref.as_matrix(), atol=1e-14)
+    q = matrix_to_quat(R)
+    np.testing.assert_allclose(q, ref.as_quat(canonical=True, scalar_first=True), atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(q), R, atol=1e-14)
+    back = matrix_to_rotvec(R)
+    away = angles < np.pi - 1e-6  # at a half-turn v and -v are the same rotation
+    np.testing.assert_allclose(back[away], v[away], atol=1e-12)
+    np.testing.assert_allclose(rotvec_to_matrix(back), R, atol=1e-12)
+    noisy = R + rng.normal(0, 1e-7, R.shape)  # nearly orthonormal
+    np.testing.assert_allclose(matrix_to_rotvec(noisy)[away], Rotation.from_matrix(noisy).as_rotvec()[away], atol=1e-6)
+    np.testing.assert_allclose(rotvec_to_matrix(matrix_to_rotvec(noisy)), Rotation.from_matrix(noisy).as_matrix(), atol=1e-6)

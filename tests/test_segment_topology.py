@@ -130,3 +130,19 @@ def test_topology_of_a_long_take_reads_each_frame_once(linkage):
     from mocapskel.solvers.jmv import pair_cost
 
     assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topology.Params().alpha)
+
+
+def test_average_linkage_heights_match_scipy():
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    from mocapskel.stages.segment import average_linkage_heights, rigid_count
+
+    rng = np.random.default_rng(3)
+    for M in (2, 3, 7, 30, 90):
+        X = rng.normal(size=(M, 4)) * rng.uniform(0.1, 10, size=(M, 1))
+        D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+        Z = linkage(squareform(D, checks=False), method="average")
+        np.testing.assert_allclose(average_linkage_heights(D), np.sort(Z[:, 2]), rtol=1e-12)
+        for t in np.quantile(Z[:, 2], [0.1, 0.5, 0.9]):
+            assert rigid_count(D, t) == fcluster(Z, t=t, criterion="distance").max()

@@ -713,6 +713,7 @@ def pair_cost(
     *,
     alpha: float,
     frames: int | ArrayLike = 40,
+    bases: tuple = (None, None),
 ) -> float:
     """Cheap joint cost of two marker groups, for choosing the topology.
 
@@ -731,6 +732,9 @@ def pair_cost(
         at infinity. Use a small positive value.
     frames : int or (K,) int array
         Number of evenly spaced frames to use, or the frame indices.
+    bases : (Basis or None, Basis or None)
+        The groups' :func:`~mocapskel.solvers.mtb.mtb_basis` on those frames, when the
+        caller has them (a topology scores every pair, each group's basis is made once).
 
     Returns
     -------
@@ -753,12 +757,13 @@ def pair_cost(
 
     best = np.inf
     tried = False
-    for side, name in ((a, "a"), (b, "b")):
+    for side, name, given in ((a, "a", bases[0]), (b, "b", bases[1])):
         if side.shape[1] >= 3:
-            basis = mtb_basis(side)
+            basis = mtb_basis(side) if given is None else given
             if basis:
                 tried = True
-                fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name)
+                # a ranking needs Q to a few digits, not to rounding
+                fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name, tol=1e-6)
                 if np.isfinite(fit.cost):
                     best = min(best, fit.cost)
     if tried and np.isfinite(best):

@@ -38,8 +38,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import linalg
-from scipy.optimize import linear_sum_assignment
 
 from .rigid import kabsch
 
@@ -652,6 +650,8 @@ def link_tracks(
     BIG = 1e6
     M = np.full((ue.size, us.size), BIG)
     M[ie, js] = gc
+    from scipy.optimize import linear_sum_assignment  # here: a costly import, for passive takes only
+
     r, c = linear_sum_assignment(M)
     keep = M[r, c] < BIG
     r, c = r[keep], c[keep]
@@ -888,6 +888,8 @@ def repulsion_spectral(
     dA, dR = A.sum(1), R.sum(1)
     W = A - R + np.diag(dR)
     D = np.diag(np.maximum(dA + dR, 1e-12))
+    from scipy import linalg
+
     vals, vecs = linalg.eigh(W, D)
     X = vecs[:, np.argsort(vals)[::-1][:k]]
     X = X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12)

@@ -28,7 +28,6 @@ is +1 for the cyclic orders XYZ, YZX, ZXY and -1 for the others.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     "ORDERS",
@@ -262,7 +261,12 @@ def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
     flat, lead = _flat_vecs(v, 3)
     if flat.shape[0] == 0:
         return np.zeros(lead + (3, 3))
-    return Rotation.from_rotvec(flat).as_matrix().reshape(lead + (3, 3))
+    th = np.sqrt(np.einsum("ni,ni->n", flat, flat))
+    half = 0.5 * th
+    # sin(t/2)/t: its series near 0 (no 0/0), exact to rounding past 1e-3 rad
+    k = np.where(th > 1e-3, np.sin(half) / np.where(th > 1e-3, th, 1.0), 0.5 - th * th / 48.0)
+    q = np.concatenate([np.cos(half)[:, None], k[:, None] * flat], axis=1)
+    return _quat_matrices(q).reshape(lead + (3, 3))
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
@@ -280,7 +284,12 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     flat, lead = _flat_mats(R)
     if flat.shape[0] == 0:
         return np.zeros(lead + (3,))
-    return Rotation.from_matrix(flat).as_rotvec().reshape(lead + (3,))
+    q = _matrix_quats(flat)  # w >= 0
+    w, u = q[:, 0], q[:, 1:]
+    n = np.sqrt(np.einsum("ni,ni->n", u, u))
+    # angle / sin(angle/2) = 2 atan2(n, w) / n; near 0 its series in n (w ~ 1)
+    scale = np.where(n > 1e-6, 2.0 * np.arctan2(n, w) / np.where(n > 1e-6, n, 1.0), 2.0 / w * (1.0 - n * n / (3.0 * w * w)))
+    return (scale[:, None] * u).reshape(lead + (3,))
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -298,7 +307,7 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     flat, lead = _flat_vecs(q, 4)
     if flat.shape[0] == 0:
         return np.zeros(lead + (3, 3))
-    return Rotation.from_quat(flat, scalar_first=True).as_matrix().reshape(lead + (3, 3))
+    return _quat_matrices(flat).reshape(lead + (3, 3))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -311,13 +320,68 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     Returns
     -------
     q : (..., 4) ndarray
-        Scalar first, the ``w >= 0`` hemisphere.
+        Scalar first, the ``w >= 0`` hemisphere (for ``w == 0``, the first
+        non-zero component positive).
     """
     flat, lead = _flat_mats(R)
     if flat.shape[0] == 0:
         return np.zeros(lead + (4,))
-    q = Rotation.from_matrix(flat).as_quat(canonical=True, scalar_first=True)
-    return q.reshape(lead + (4,))
+    return _matrix_quats(flat).reshape(lead + (4,))
+
+
+def _quat_matrices(q: np.ndarray) -> np.ndarray:
+    """(n, 4) quaternions, scalar first, any non-zero length -> (n, 3, 3) rotations."""
+    q = q / np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
+    w, x, y, z = q.T
+    R = np.empty((q.shape[0], 3, 3))
+    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    R[:, 0, 1] = 2 * (x * y - w * z)
+    R[:, 1, 0] = 2 * (x * y + w * z)
+    R[:, 0, 2] = 2 * (x * z + w * y)
+    R[:, 2, 0] = 2 * (x * z - w * y)
+    R[:, 1, 2] = 2 * (y * z - w * x)
+    R[:, 2, 1] = 2 * (y * z + w * x)
+    return R
+
+
+def _matrix_quats(M: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) nearly orthonormal matrices -> (n, 4) unit quaternions, w >= 0 (canonical).
+
+    Markley's method: of the four ways to read the quaternion off the matrix
+    (from its trace or from one of its diagonal entries), the one with the
+    largest leading component, so that nothing is divided by a small number;
+    then normalised, which also takes a nearly orthonormal matrix to a rotation.
+    """
+    d = np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2]], axis=1)
+    tr = d.sum(1)
+    choice = np.argmax(np.concatenate([d, tr[:, None]], axis=1), axis=1)
+    q = np.empty((M.shape[0], 4))  # x, y, z, w while built
+    for i in range(3):
+        sel = choice == i
+        if not sel.any():
+            continue
+        j, k = (i + 1) % 3, (i + 2) % 3
+        Ms = M[sel]
+        q[sel, i] = 1 - tr[sel] + 2 * Ms[:, i, i]
+        q[sel, j] = Ms[:, j, i] + Ms[:, i, j]
+        q[sel, k] = Ms[:, k, i] + Ms[:, i, k]
+        q[sel, 3] = Ms[:, k, j] - Ms[:, j, k]
+    sel = choice == 3
+    if sel.any():
+        Ms = M[sel]
+        q[sel, 0] = Ms[:, 2, 1] - Ms[:, 1, 2]
+        q[sel, 1] = Ms[:, 0, 2] - Ms[:, 2, 0]
+        q[sel, 2] = Ms[:, 1, 0] - Ms[:, 0, 1]
+        q[sel, 3] = 1 + tr[sel]
+    q = q[:, [3, 0, 1, 2]]
+    q /= np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
+    # canonical sign: w > 0, or for w == 0 the first non-zero component positive
+    nz = q != 0
+    first = np.take_along_axis(q, np.argmax(nz, axis=1)[:, None], axis=1)[:, 0]
+    q *= np.where(first < 0, -1.0, 1.0)[:, None]
+    return q
 
 
 def slerp_fill(R: np.ndarray, valid: np.ndarray) -> np.ndarray:

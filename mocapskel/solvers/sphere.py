@@ -71,7 +71,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
 
 __all__ = [
     "SphereFit",
@@ -348,6 +347,8 @@ def _estimate_s(m: _Moments, ref: np.ndarray, w: np.ndarray, s_hi: float) -> flo
     fhi = _secular(hi, m, ref, w, V, tr)
     if not fhi < 0:
         return None
+    from scipy.optimize import brentq  # here: importing scipy.optimize costs a tenth of a second
+
     return float(brentq(_secular, 0.0, hi, args=(m, ref, w, V, tr), xtol=1e-15 * hi, rtol=1e-15, maxiter=200))
 
 
@@ -703,6 +704,8 @@ def sphere_mle(
 
     if n_total < 3 + k:
         return _failed("mle", k, n_total, "fewer samples than unknowns")
+    from scipy.optimize import least_squares
+
     res = least_squares(fun, np.concatenate([c0, r0]), jac=jac, method="lm", max_nfev=max_nfev, x_scale="jac")
     p = res.x
     c = p[:3] + o

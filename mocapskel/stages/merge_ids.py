@@ -48,7 +48,6 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from ..artifacts import Markers
 from ..errors import DataError
@@ -438,6 +437,8 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     reliable = mg.partners_of(st.mean, st.std, st.n, mg_.rigid_mm,
                               max(mg_.min_shared, int(p.reliable_s * rate / mg_.sums.stride)), st.shared, 0.02)
     hard, soft = mg.rigid_outliers(st.points, st.vis, st.mean, st.std, reliable, jump_mm=p.jump_mm)
+    from scipy import ndimage  # here: passive takes only (importing it costs a tenth of a second)
+
     vert = np.zeros((3, 3), dtype=bool)
     vert[:, 1] = True
     jumps = ndimage.binary_propagation(hard, structure=vert, mask=soft | hard) if hard.any() else hard

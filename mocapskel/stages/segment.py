@@ -15,8 +15,6 @@ from dataclasses import dataclass
 import warnings
 
 import numpy as np
-from scipy.cluster.hierarchy import fcluster, linkage
-from scipy.spatial.distance import squareform
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
@@ -153,9 +151,32 @@ def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
         return M
     D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
     D = 0.5 * (D + D.T)
-    np.fill_diagonal(D, 0.0)
-    Z = linkage(squareform(D, checks=False), method="average")
-    return int(fcluster(Z, t=rigid_mm, criterion="distance").max())
+    # average linkage never merges lower than an earlier merge, so the groups left at the cut
+    # are the markers less the merges at or below it
+    return int(M - np.count_nonzero(average_linkage_heights(D) <= rigid_mm))
+
+
+def average_linkage_heights(D: np.ndarray) -> np.ndarray:
+    """Merge heights (M - 1,) of average-linkage (UPGMA) clustering of a symmetric distance matrix (M, M).
+
+    The same heights as ``scipy.cluster.hierarchy.linkage(..., method="average")``
+    (the tests compare them), without importing scipy's clustering (a third
+    of a second per run). O(M^3): a few milliseconds for a hundred markers.
+    """
+    D = np.array(D, dtype=float)
+    M = D.shape[0]
+    np.fill_diagonal(D, np.inf)
+    size = np.ones(M)
+    heights = np.empty(max(M - 1, 0))
+    for n in range(M - 1):
+        i, j = divmod(int(np.argmin(D)), M)
+        heights[n] = D[i, j]
+        row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])  # the merged cluster's mean distances
+        D[i], D[:, i] = row, row
+        D[i, i] = np.inf
+        D[j], D[:, j] = np.inf, np.inf
+        size[i] += size[j]
+    return heights
 
 
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:

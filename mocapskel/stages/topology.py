@@ -19,8 +19,13 @@ import numpy as np
 from ..artifacts import Segments, Topology
 from ..errors import DataError
 from ..solvers.jmv import pair_cost
+from ..solvers.mtb import mtb_basis
 
 VERSION = 2
+
+
+#: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
+PAIR_FRAMES = 40
 
 
 @dataclass(frozen=True)
@@ -140,12 +145,24 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     member[np.flatnonzero(inseg), segments.group[inseg]] = 1.0
     seen = (vis.astype(np.float32) @ member).astype(np.int64)  # (F, S), exact small counts
     C = np.full((S, S), np.inf)
+    members = [segments.members(s) for s in range(S)]
+    # pair_cost's own subsample of the common frames, and each group's basis on it, made once
+    # for all the group's pairs that use those frames
+    k = min(PAIR_FRAMES, frames.size)
+    sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
+    bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     for a in range(S):
         for b in range(a + 1, S):
             fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
-            if fr.size:
-                sub = pts[fr]
-                C[a, b] = C[b, a] = pair_cost(sub[:, segments.members(a)], sub[:, segments.members(b)], alpha=params.alpha)
+            if not fr.size:
+                continue
+            if fr.size == frames.size and np.array_equal(fr, frames):
+                C[a, b] = C[b, a] = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=params.alpha,
+                                              frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]))
+            else:
+                pf = pts[fr]
+                C[a, b] = C[b, a] = pair_cost(pf[:, members[a]], pf[:, members[b]], alpha=params.alpha,
+                                              frames=PAIR_FRAMES)
     tree = minimum_spanning_tree(S, C)
     if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
