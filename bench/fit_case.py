@@ -39,11 +39,15 @@ def main() -> None:
     ap.add_argument("--link-length", type=float, default=300.0)
     ap.add_argument("--format", default="c3d")
     ap.add_argument("--joint-method", default="auto")
+    ap.add_argument("--jumps", type=int, default=0)
+    ap.add_argument("--ghosts", type=int, default=0)
+    ap.add_argument("--passive", action="store_true", help="new label after every gap")
     ap.add_argument("--write", default=None, help=argparse.SUPPRESS)  # internal: generate into this folder, then stop
     a = ap.parse_args()
     rec = Recipe(kind=a.kind, seed=a.seed, frames=a.frames, noise_mm=a.noise, soft_tissue_mm=a.soft_tissue,
                  gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps,
-                 counts=tuple(int(c) for c in a.counts.split("-")), link_length=a.link_length)
+                 counts=tuple(int(c) for c in a.counts.split("-")), link_length=a.link_length,
+                 jumps=a.jumps, ghosts=a.ghosts, passive=a.passive)
     if a.write:
         take = make(rec)
         path = Path(a.write) / f"take.{a.format}"
@@ -65,6 +69,13 @@ def main() -> None:
         write_bvh(Path(d) / "out.bvh", b.skeleton, b.root_pos, b.local_rot, b.frame_time)
         res.run.seconds["write"] = time.perf_counter() - t_w
         total = time.perf_counter() - t
+        if a.passive or a.ghosts:  # score against the truth of the merged labels (not timed)
+            from bench.passive import merged_truth
+            from mocapskel.artifacts import markers_of
+            from mocapskel.io.markers import read_markers
+            from mocapskel.synth.truth import SynthTake
+
+            truth = merged_truth(markers_of(res.motion), SynthTake(markers=read_markers(path), truth=truth))
     sc = evaluate.score_motion(res.motion, truth)
     sj = evaluate.score_joints(res.motion.skeleton.joints, truth)
     out = {

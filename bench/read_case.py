@@ -28,9 +28,13 @@ def main() -> None:
     ap.add_argument("--soft-tissue", type=float, default=0.0)
     ap.add_argument("--gaps", type=float, default=0.0)
     ap.add_argument("--mps", type=int, default=None, help="markers per segment (human)")
+    ap.add_argument("--jumps", type=int, default=0)
+    ap.add_argument("--ghosts", type=int, default=0)
+    ap.add_argument("--passive", action="store_true")
     a = ap.parse_args()
     take = make(Recipe(kind="human", seed=a.seed, frames=a.frames, noise_mm=a.noise, soft_tissue_mm=a.soft_tissue,
-                       gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps))
+                       gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps,
+                       jumps=a.jumps, ghosts=a.ghosts, passive=a.passive))
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "take.c3d"
         write_markers(p, take.markers)

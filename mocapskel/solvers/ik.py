@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..parallel import run_blocks
-from .rigid import kabsch
+from .rigid import _adj4, kabsch
 
 __all__ = ["IKResult", "segment_poses", "solve_ik"]
 
@@ -1489,7 +1489,7 @@ def _c_horn(H: np.ndarray, lam0: np.ndarray, need: np.ndarray) -> tuple[np.ndarr
                                                       (n02, n12, n22, n23), (n03, n13, n23, n33))]  # fmt: skip
         for i in range(4):
             A[i][i] = A[i][i] - lr
-        C = _adj4(A)
+        C, _ = _adj4(A)
         k = np.argmax(np.abs(np.stack([C[i][i] for i in range(4)])), axis=0)
         col = np.stack([np.choose(k, C[i]) for i in range(4)])
         q4 = q.reshape(4, -1)
@@ -1499,27 +1499,3 @@ def _c_horn(H: np.ndarray, lam0: np.ndarray, need: np.ndarray) -> tuple[np.ndarr
     return q, good
 
 
-def _adj4(a: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
-    """Adjugate of 4x4 matrices given as nested lists of arrays, by 2x2 minors (Laplace)."""
-    s0 = a[0][0] * a[1][1] - a[1][0] * a[0][1]
-    s1 = a[0][0] * a[1][2] - a[1][0] * a[0][2]
-    s2 = a[0][0] * a[1][3] - a[1][0] * a[0][3]
-    s3 = a[0][1] * a[1][2] - a[1][1] * a[0][2]
-    s4 = a[0][1] * a[1][3] - a[1][1] * a[0][3]
-    s5 = a[0][2] * a[1][3] - a[1][2] * a[0][3]
-    c5 = a[2][2] * a[3][3] - a[3][2] * a[2][3]
-    c4 = a[2][1] * a[3][3] - a[3][1] * a[2][3]
-    c3 = a[2][1] * a[3][2] - a[3][1] * a[2][2]
-    c2 = a[2][0] * a[3][3] - a[3][0] * a[2][3]
-    c1 = a[2][0] * a[3][2] - a[3][0] * a[2][2]
-    c0 = a[2][0] * a[3][1] - a[3][0] * a[2][1]
-    return [
-        [a[1][1] * c5 - a[1][2] * c4 + a[1][3] * c3, -a[0][1] * c5 + a[0][2] * c4 - a[0][3] * c3,
-         a[3][1] * s5 - a[3][2] * s4 + a[3][3] * s3, -a[2][1] * s5 + a[2][2] * s4 - a[2][3] * s3],
-        [-a[1][0] * c5 + a[1][2] * c2 - a[1][3] * c1, a[0][0] * c5 - a[0][2] * c2 + a[0][3] * c1,
-         -a[3][0] * s5 + a[3][2] * s2 - a[3][3] * s1, a[2][0] * s5 - a[2][2] * s2 + a[2][3] * s1],
-        [a[1][0] * c4 - a[1][1] * c2 + a[1][3] * c0, -a[0][0] * c4 + a[0][1] * c2 - a[0][3] * c0,
-         a[3][0] * s4 - a[3][1] * s2 + a[3][3] * s0, -a[2][0] * s4 + a[2][1] * s2 - a[2][3] * s0],
-        [-a[1][0] * c3 + a[1][1] * c1 - a[1][2] * c0, a[0][0] * c3 - a[0][1] * c1 + a[0][2] * c0,
-         -a[3][0] * s3 + a[3][1] * s1 - a[3][2] * s0, a[2][0] * s3 - a[2][1] * s1 + a[2][2] * s0],
-    ]  # fmt: skip

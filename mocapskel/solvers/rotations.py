@@ -331,19 +331,10 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 def _quat_matrices(q: np.ndarray) -> np.ndarray:
     """(n, 4) quaternions, scalar first, any non-zero length -> (n, 3, 3) rotations."""
+    from .rigid import _quat_to_matrix
+
     q = q / np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
-    w, x, y, z = q.T
-    R = np.empty((q.shape[0], 3, 3))
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    R[:, 0, 1] = 2 * (x * y - w * z)
-    R[:, 1, 0] = 2 * (x * y + w * z)
-    R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 2, 0] = 2 * (x * z - w * y)
-    R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 1] = 2 * (y * z + w * x)
-    return R
+    return _quat_to_matrix(np.ascontiguousarray(q.T))
 
 
 def _matrix_quats(M: np.ndarray) -> np.ndarray:
