@@ -1,22 +1,26 @@
-"""The floor: just reading a generated C3D take (ezc3d, and mocapskel's reader), in a fresh process.
+"""The floor: one read of a generated C3D take in a fresh process — ezc3d alone, or mocapskel's reader.
 
-    python -m bench.read_case --frames 60000 --seed 1 --noise 1 --soft-tissue 2 --gaps 4
+    python -m bench.read_case --frames 60000 --seed 1 --noise 1 --soft-tissue 2 --gaps 4 [--reader mocapskel]
 
 The take is generated as bench.fit_case generates it (same arguments, so the
-same file), written to a temporary C3D, and read: ``ezc3d.c3d`` alone (the
-floor) and :func:`~mocapskel.io.markers.read_markers`, each best of 3.
+same file; in another process) and read once: ``ezc3d.c3d(path,
+extract_forceplat_data=False)`` (default) or
+:func:`~mocapskel.io.markers.read_markers`. Once, because that is what a fit
+pays: a process's first read of a long take is the slowest (later reads
+reuse the memory the first one took from the system).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from bench.common import peak_rss_mb
-from mocapskel.io.markers import read_markers, write_markers
-from mocapskel.synth.presets import Recipe, make
+from bench.common import REPO, peak_rss_mb
+from mocapskel.io.markers import read_markers
 
 
 def main() -> None:
@@ -31,28 +35,23 @@ def main() -> None:
     ap.add_argument("--jumps", type=int, default=0)
     ap.add_argument("--ghosts", type=int, default=0)
     ap.add_argument("--passive", action="store_true")
+    ap.add_argument("--reader", choices=("ezc3d", "mocapskel"), default="ezc3d")
     a = ap.parse_args()
-    take = make(Recipe(kind="human", seed=a.seed, frames=a.frames, noise_mm=a.noise, soft_tissue_mm=a.soft_tissue,
-                       gaps_per_marker_per_minute=a.gaps, markers_per_segment=a.mps,
-                       jumps=a.jumps, ghosts=a.ghosts, passive=a.passive))
     with tempfile.TemporaryDirectory() as d:
+        gen = [x for x in sys.argv[1:] if x not in ("--json", "--reader", "ezc3d", "mocapskel")]
+        subprocess.run([sys.executable, "-m", "bench.fit_case", *gen, "--write", d], check=True, cwd=REPO)
         p = Path(d) / "take.c3d"
-        write_markers(p, take.markers)
-        del take
         import ezc3d
 
-        raw, ours = [], []
-        for _ in range(3):
-            t = time.perf_counter()
+        t = time.perf_counter()
+        if a.reader == "ezc3d":
             c = ezc3d.c3d(str(p), extract_forceplat_data=False)
-            raw.append(time.perf_counter() - t)
-            del c
-            t = time.perf_counter()
+            frames = int(c["parameters"]["POINT"]["FRAMES"]["value"][0])
+        else:
             m = read_markers(p)
-            ours.append(time.perf_counter() - t)
-            del m
-        m = read_markers(p)
-    print(json.dumps({"read_s": min(raw), "read_markers_s": min(ours), "frames": m.n_frames, "peak_rss_mb": peak_rss_mb()}))
+            frames = m.n_frames
+        secs = time.perf_counter() - t
+    print(json.dumps({"read_s": secs, "reader": a.reader, "frames": frames, "peak_rss_mb": peak_rss_mb()}))
 
 
 if __name__ == "__main__":

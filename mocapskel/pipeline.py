@@ -131,6 +131,10 @@ def run_until(
     if _index(have) > _index(target):
         raise UsageError(f"the input is already past stage {target!r} (it is a {have!r} artifact)")
     run = Run(artifact=obj, key=key, seconds=seconds, warnings=list(cache.warnings))
+    # a take read here from a file is this run's alone: the first stage may reuse its arrays
+    # (clean does, so that a long passive take is not held twice), and it is not kept after
+    owned = isinstance(source, (str, os.PathLike)) and have == "read"
+    del obj
     for stage in STAGES[_index(have) + 1 : _index(target) + 1]:
         mod = stage_module(stage)
         p = params.get(stage) or mod.Params()
@@ -145,11 +149,16 @@ def run_until(
             if progress:
                 progress(stage)
             before, before_key = run.artifact, run.key
-            run.artifact = mod.run(run.artifact, p)
+            if owned and stage == "clean":
+                run.artifact = None
+                run.artifact = mod.run(before, p, consume=True)
+            else:
+                run.artifact = mod.run(before, p)
             if key != "memory":
                 # the upstream artifact is stored by reference when it is itself a cache entry
                 up = (before, before_key) if stage != STAGES[_index(have) + 1] else None
                 cache.put(k, run.artifact, upstream=up)
+            del before
             log.info("%-9s done in %.2f s", stage, time.perf_counter() - t)
         run.seconds[stage] = time.perf_counter() - t
         run.key = k

@@ -172,3 +172,18 @@ def test_no_warning_for_infinite_coordinates():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         clean.run(m)
+
+
+def test_consume_reuses_the_input_array_and_changes_nothing_else():
+    from mocapskel.synth.presets import Recipe, make
+
+    m = make(Recipe(kind="human", seed=4, frames=1500, noise_mm=1.0, gaps_per_marker_per_minute=20, jumps=20,
+                    ghosts=8)).markers
+    plain = clean.run(m)
+    mine = replace(m, points=m.points.copy())
+    owned = clean.run(mine, consume=True)
+    assert np.shares_memory(owned.points, mine.points)  # no second copy of the take
+    assert not np.shares_memory(plain.points, m.points)
+    assert owned.labels == plain.labels and owned.info["clean"] == plain.info["clean"]
+    assert len(plain.labels) < m.n_markers  # some markers were dropped: the in-place compaction was exercised
+    np.testing.assert_array_equal(owned.points, plain.points)

@@ -155,6 +155,22 @@ def test_engines_agree_on_written_file(tmp_path: Path) -> None:
     a, b = read_c3d(out), read_c3d(out, engine="numpy")
     np.testing.assert_array_equal(a.points, b.points)
     assert a.labels == b.labels and a.rate == b.rate
+    assert a.info["engine"] == "ezc3d"  # the default for a file of ordinary size
+
+
+def test_auto_engine_reads_large_files_with_numpy(tmp_path: Path, monkeypatch) -> None:
+    from mocapskel.io import c3d as c3d_mod
+
+    rng = np.random.default_rng(14)
+    m = random_markers(rng, F=50, M=4, gaps=0.1)
+    out = tmp_path / "t.c3d"
+    write_c3d(out, m)
+    monkeypatch.setattr(c3d_mod, "EZC3D_MAX_SAMPLES", 199)  # 50 frames x 4 points = 200 samples: "large"
+    big = read_c3d(out)
+    assert big.info["engine"] == "numpy"
+    np.testing.assert_array_equal(big.points, read_c3d(out, engine="ezc3d").points)
+    monkeypatch.setattr(c3d_mod, "EZC3D_MAX_SAMPLES", 200)
+    assert read_c3d(out).info["engine"] == "ezc3d"
 
 
 def test_write_leaves_no_temporary_file_and_keeps_old_file_on_failure(tmp_path: Path) -> None:

@@ -10,8 +10,13 @@ Reading is done in two steps:
    have been checked here. This parser also keeps the values ezc3d rewrites
    while reading (the header's frame range and rate, ``POINT:FRAMES``,
    ``POINT:LONG_FRAMES``, ``TRIAL:ACTUAL_*_FIELD``).
-2. The points themselves come from ezc3d (``engine="ezc3d"``, the default)
-   or from a direct numpy read of the data block (``engine="numpy"``).
+2. The points themselves come from ezc3d (``engine="ezc3d"``) or from a
+   direct numpy read of the data block (``engine="numpy"``). The default,
+   ``engine="auto"``, is ezc3d, except for files of more than
+   :data:`EZC3D_MAX_SAMPLES` point samples (points x frames): ezc3d keeps a
+   C++ object of about 150 bytes per sample, so that a passive take of 450
+   labels over 60,000 frames would need some 4 GB to be read; numpy reads it
+   with little more memory than the points themselves.
 
 Timings (2-core machine, ezc3d 1.7.x, best of 10):
 
@@ -416,19 +421,23 @@ def read_layout(path: str | os.PathLike) -> C3DLayout:
 
 
 def _read_frames_numpy(path: str | os.PathLike, lay: C3DLayout, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frames ``[start, stop)`` of the point block, read with a memory map.
+    """Frames ``[start, stop)`` of the point block, read straight from the file in blocks of frames.
+
+    Each block is decoded into the preallocated outputs, so that the memory
+    needed is the outputs and one block (a memory map of a whole long take
+    would add its pages to the process, and a full float32 copy its size).
 
     Returns
     -------
     xyz : (n, P, 3) float64 ndarray
         Coordinates in the file's units (integer data already multiplied by
         the scale factor).
-    residual : (n, P) float64 ndarray
+    residual : (n, P) float32 ndarray
         The fourth word of every point; negative means "not seen".
     """
     n, P = stop - start, lay.n_points
     if n <= 0 or P == 0:
-        return np.zeros((max(n, 0), P, 3)), np.zeros((max(n, 0), P))
+        return np.zeros((max(n, 0), P, 3)), np.zeros((max(n, 0), P), dtype=np.float32)
     words = lay.bytes_per_frame // (4 if lay.is_float else 2)
     offset = (lay.data_start - 1) * 512 + start * lay.bytes_per_frame
     big = lay.processor == "mips"
@@ -436,16 +445,22 @@ def _read_frames_numpy(path: str | os.PathLike, lay: C3DLayout, start: int, stop
         dt = np.dtype(">f4" if big else "<f4") if lay.processor != "dec" else np.dtype("<u4")
     else:
         dt = np.dtype(">i2" if big else "<i2")
-    mm = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(n, words))
-    try:
-        block = np.array(mm[:, : 4 * P])
-    finally:
-        del mm
-    if lay.is_float and lay.processor == "dec":
-        block = _decode_float32(block.tobytes(), "dec").reshape(n, 4 * P)
-    block = block.reshape(n, P, 4)
-    xyz = block[..., :3].astype(np.float64)
-    residual = block[..., 3].astype(np.float64)
+    xyz = np.empty((n, P, 3))
+    residual = np.empty((n, P), dtype=np.float32)
+    step = max(1, (8 << 20) // max(lay.bytes_per_frame, 1))  # about 8 MB of the file per block
+    with open(path, "rb") as f:
+        f.seek(offset)
+        for lo in range(0, n, step):
+            k = min(step, n - lo)
+            block = np.fromfile(f, dtype=dt, count=k * words)
+            if block.size != k * words:
+                raise OSError(f"the data block ends after {lo + block.size // words} of {n} frames")
+            block = block.reshape(k, words)[:, : 4 * P]
+            if lay.is_float and lay.processor == "dec":
+                block = _decode_float32(np.ascontiguousarray(block).tobytes(), "dec").reshape(k, 4 * P)
+            block = block.reshape(k, P, 4)
+            xyz[lo : lo + k] = block[..., :3]
+            residual[lo : lo + k] = block[..., 3]
     if not lay.is_float:
         xyz *= abs(lay.scale)
     return xyz, residual
@@ -470,17 +485,24 @@ def _read_frames_ezc3d(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(raw[:3].transpose(2, 1, 0))
 
 
-def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ezc3d") -> RawTake:
+#: Point samples (points x frames) above which ``engine="auto"`` reads with numpy: ezc3d's
+#: per-sample objects would take more than about 750 MB (60,000 frames of 48 markers are
+#: 2.9 million samples).
+EZC3D_MAX_SAMPLES = 5_000_000
+
+
+def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy"] = "auto") -> RawTake:
     """Read the 3D points of a C3D file.
 
     Parameters
     ----------
     path : str or PathLike
         The C3D file.
-    engine : {"ezc3d", "numpy"}
+    engine : {"auto", "ezc3d", "numpy"}
         Who reads the point block once the header and parameters have been
-        checked: ezc3d (the default), or a memory map of the data block
-        (about 15x faster and without ezc3d's per-point objects). Files
+        checked: ezc3d, or a memory map of the data block (about 15x faster
+        and without ezc3d's per-point objects); "auto" (the default): ezc3d
+        up to :data:`EZC3D_MAX_SAMPLES` point samples, numpy above. Files
         written by a MIPS (big-endian) processor, which ezc3d 1.7 refuses,
         are always read with numpy.
 
@@ -537,6 +559,8 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
         raise InputError(f"no frame rate (POINT:RATE and the header rate are 0) — {_TO_USER}", spath)
 
     # ----- points
+    if engine == "auto":
+        engine = "numpy" if P * target > EZC3D_MAX_SAMPLES else "ezc3d"
     if engine == "ezc3d" and lay.processor == "mips":
         engine = "numpy"  # ezc3d 1.7: "MIPS processor type not supported yet"
     residual: np.ndarray | None = None  # (F, P); None: negative residuals are NaN already (ezc3d)
@@ -550,7 +574,7 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
     except (RuntimeError, OSError, IndexError, MemoryError) as e:
         raise InputError(f"unreadable C3D file ({str(e).splitlines()[0] if str(e) else type(e).__name__}) — {_TO_USER}", spath) from None
     except ValueError as e:
-        if engine not in ("ezc3d", "numpy"):
+        if engine not in ("ezc3d", "numpy"):  # (auto is resolved above)
             raise
         raise InputError(f"unreadable C3D file ({e}) — {_TO_USER}", spath) from None
     if xyz.shape[1] != P:
@@ -564,7 +588,7 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
             raise InputError(f"damaged C3D file ({F} frames read where {target} are declared) — {_TO_USER}", spath)
         txyz, tres = _read_frames_numpy(path, lay, F, target)  # ezc3d stops at 65535 frames
         xyz = np.concatenate([xyz, txyz])
-        residual = np.concatenate([residual if residual is not None else np.zeros((F, P)), tres])
+        residual = np.concatenate([residual if residual is not None else np.zeros((F, P), dtype=np.float32), tres])
         del txyz, tres
     if saturated:  # trailing frames of zero bytes past frame 65535 are block padding, not frames
         past = ~(xyz[_SATURATED:] != 0).any(axis=(1, 2))  # a NaN (ezc3d's negative residual) is not padding
@@ -591,7 +615,7 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["ezc3d", "numpy"] = "ez
     gap = (xyz[..., 0] == 0) & (xyz[..., 1] == 0) & (xyz[..., 2] == 0)
     if residual is not None:
         gap |= residual < 0
-    xyz[gap] = np.nan
+    np.copyto(xyz, np.nan, where=gap[..., None])  # (a boolean index would build index arrays as long as the gaps)
 
     # ----- units
     units_list = [u for u in lay.string_series("POINT", "UNITS") if u.strip()]

@@ -322,9 +322,11 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
     finite = np.isfinite(pts[..., 0]) & np.isfinite(pts[..., 1]) & np.isfinite(pts[..., 2])  # (F, M)
     nonfinite = 0
     if not finite.all():
-        gaps = ~finite
-        nonfinite = int(np.count_nonzero(np.isinf(pts[gaps]).any(axis=1)))
-        pts[gaps] = np.nan
+        # in place and without index arrays (a passive take is mostly gaps)
+        inf = np.isinf(pts[..., 0]) | np.isinf(pts[..., 1]) | np.isinf(pts[..., 2])
+        nonfinite = int(np.count_nonzero(inf))
+        np.copyto(pts, np.nan, where=~finite[..., None])
+        del inf
     if nonfinite:
         warnings.append(f"{nonfinite} samples with infinite coordinates read as gaps")
 

@@ -34,6 +34,10 @@ class Params:
     """Width of the running median used to find jumps (at least 5 frames)."""
 
 
+#: Samples (frames x markers) per block where clean works through a take in blocks of frames.
+_BLOCK_SAMPLES = 1 << 20
+
+
 def _visible(points: np.ndarray) -> np.ndarray:
     """(F, M) bool: samples whose three coordinates are all finite.
 
@@ -49,14 +53,22 @@ def _norm3(v: np.ndarray) -> np.ndarray:
     return np.sqrt((x * x + y * y) + z * z)
 
 
-def _window_count(mask: np.ndarray, before: int, after: int) -> np.ndarray:
-    """Per column, how many of ``mask[f - before : f + after + 1]`` are True (outside the array: False)."""
-    F = mask.shape[0]
-    # running count, padded so that every window is one difference of two slices
-    c = np.zeros((before + F + after + 1,) + mask.shape[1:], dtype=np.int32)
-    np.cumsum(mask, axis=0, dtype=np.int32, out=c[before + 1 : before + F + 1])
-    c[before + F + 1 :] = c[before + F]
-    return c[before + after + 1 :] - c[:F]
+def _window_any(mask: np.ndarray, before: int, after: int) -> np.ndarray:
+    """Per column, whether any of ``mask[f - before : f + after + 1]`` is True (outside the array: False).
+
+    A running count, a block of columns at a time (its temporaries stay small on long takes).
+    """
+    F, M = mask.shape
+    out = np.empty((F, M), dtype=bool)
+    step = max(1, _BLOCK_SAMPLES // max(F, 1))
+    for lo in range(0, M, step):
+        sub = mask[:, lo : lo + step]
+        # running count, padded so that every window is one difference of two slices
+        c = np.zeros((before + F + after + 1, sub.shape[1]), dtype=np.int32)
+        np.cumsum(sub, axis=0, dtype=np.int32, out=c[before + 1 : before + F + 1])
+        c[before + F + 1 :] = c[before + F]
+        np.greater(c[before + after + 1 :], c[:F], out=out[:, lo : lo + step])
+    return out
 
 
 def _short_runs(vis: np.ndarray, min_run: int) -> tuple[np.ndarray, int]:
@@ -80,12 +92,12 @@ def _short_runs(vis: np.ndarray, min_run: int) -> tuple[np.ndarray, int]:
 def _hold_index(vis: np.ndarray) -> np.ndarray:
     """(F, M) frame index :func:`hold_fill` takes each sample from (F - 1 for markers never seen)."""
     F = vis.shape[0]
-    ar = np.arange(F, dtype=np.int32)[:, None]
-    fwd = np.where(vis, ar, np.int32(-1))
-    np.maximum.accumulate(fwd, axis=0, out=fwd)
+    idx = np.where(vis, np.arange(F, dtype=np.int32)[:, None], np.int32(-1))
+    np.maximum.accumulate(idx, axis=0, out=idx)
     # before its first sighting a marker holds its first seen value
     first = np.where(vis.any(axis=0), np.argmax(vis, axis=0), F - 1).astype(np.int32)
-    return np.where(fwd >= 0, fwd, first[None, :])
+    np.copyto(idx, first[None, :], where=idx < 0)
+    return idx
 
 
 def hold_fill(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -122,33 +134,42 @@ def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params
     # than half the jump size (or a gap edge), plus a sparse sampling of frames
     # for each marker's robust spread (MAD). Its windows read the gap-filled
     # track (hold_fill) through the hold index, at the window frames only.
-    step = np.full((F, M), np.inf)
-    with np.errstate(invalid="ignore"):  # inf - inf in a gap
-        d = np.subtract(points[1:], points[:-1])
-    d *= d
-    np.add(d[..., 0], d[..., 1], out=step[1:])  # np.linalg.norm's order: (x² + y²) + z²
-    step[1:] += d[..., 2]
+    step = np.empty((F, M))
+    step[0] = np.inf
+    blk = max(1, _BLOCK_SAMPLES // max(M, 1))  # frames at a time: the differences of a whole long take are large
+    for lo in range(1, F, blk):
+        hi = min(F, lo + blk)
+        with np.errstate(invalid="ignore"):  # inf - inf in a gap
+            d = np.subtract(points[lo:hi], points[lo - 1 : hi - 1])
+        d *= d
+        np.add(d[..., 0], d[..., 1], out=step[lo:hi])  # np.linalg.norm's order: (x² + y²) + z²
+        step[lo:hi] += d[..., 2]
     np.sqrt(step, out=step)
-    del d
     big = ~(step <= 0.5 * params.jump_mm)  # NaN (gap edge) counts as big
     big[0] = False
-    cand = (_window_count(big, h + 1, h + 1) > 0) & vis
+    del step
+    cand = _window_any(big, h + 1, h + 1)
+    del big
+    cand &= vis
     every = max(1, F // 2000)
     sampled = np.zeros((F, M), dtype=bool)
     sampled[::every] = vis[::every]
     fi, mi = np.nonzero(cand | sampled)
     hold = _hold_index(vis).ravel()
     flat = points.reshape(F * M, 3)
-    dev = np.full((F, M), np.nan)
+    dev = np.empty(fi.size)  # the deviation of each of those samples (only they are needed)
     offs = np.arange(-h, h + 1)
     for k in range(0, fi.size, 200_000):  # chunks bound the memory of the windows
         f, m = fi[k : k + 200_000], mi[k : k + 200_000]
         src = np.take(hold, np.clip(f[:, None] + offs, 0, F - 1) * M + m[:, None])  # (K, w) frames
         win = np.take(flat, src * M + m[:, None], axis=0)  # (K, w, 3), every sample seen
         med = np.partition(win, h, axis=1)[:, h]  # the median of an odd window
-        dev[f, m] = _norm3(flat[f * M + m] - med)
+        dev[k : k + 200_000] = _norm3(flat[f * M + m] - med)
+    del hold
     # the MAD over the sampled frames only (rows never sampled hold nothing)
-    d_s = np.where(sampled[::every], dev[::every], np.nan)
+    is_s = sampled[fi, mi]
+    d_s = np.full((sampled[::every].shape[0], M), np.nan)
+    d_s[fi[is_s] // every, mi[is_s]] = dev[is_s]
     has = sampled[::every].any(axis=0)
     mad = np.zeros(M)
     if has.any():
@@ -157,15 +178,20 @@ def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params
             mad[has] = np.nanmedian(d_s[:, has], axis=0)
     mad = np.nan_to_num(mad, nan=0.0)
     thresh = np.maximum(params.jump_mm, params.jump_mad * 1.4826 * mad)
-    with np.errstate(invalid="ignore"):
-        return cand & (dev > thresh[None, :])
+    jumps = np.zeros((F, M), dtype=bool)
+    is_c = cand[fi, mi]
+    jumps[fi[is_c], mi[is_c]] = dev[is_c] > thresh[mi[is_c]]
+    return jumps
 
 
-def run(markers: Markers, params: Params = Params()) -> Markers:
+def run(markers: Markers, params: Params = Params(), *, consume: bool = False) -> Markers:
     """Clean a take: jumps to gaps, trim gap edges, drop short runs and empty markers.
 
     Returns a new Markers with ``stage="clean"`` and ``info["clean"]`` counting
     what was removed and why. Raises DataError when nothing is left.
+    ``consume=True``: the caller will not use ``markers`` again, and its points
+    array becomes the output's (compacted in place) instead of being copied —
+    what keeps a long passive take (hundreds of labels) within memory.
     """
     F, M, _ = markers.points.shape
     vis0 = _visible(markers.points)
@@ -178,7 +204,7 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     if params.trim_frames > 0 and F > 2 * params.trim_frames:
         k = params.trim_frames
         # a binary erosion along time with the take's ends counted as visible
-        kept = vis & (_window_count(~vis, k, k) == 0)
+        kept = vis & ~_window_any(~vis, k, k)
         trimmed = vis & ~kept
         # never trim a run away entirely: keep runs that would vanish (they are judged by length next)
         vis = kept
@@ -186,7 +212,6 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     min_run = max(1, int(np.ceil(params.min_run_s * markers.rate)))
     short_mask, n_short = _short_runs(vis, min_run)
     vis &= ~short_mask
-    pts = np.where(vis[:, :, None], markers.points, np.nan)  # gaps, jumps, trimmed edges and short runs
 
     keep = vis.any(axis=0)
     dropped = [markers.labels[i] for i in np.flatnonzero(~keep)]
@@ -196,6 +221,17 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
             f"{params.min_run_s:g} s after cleaning — the take is too short or too broken to fit",
             markers.source or None,
         )
+    cols = np.flatnonzero(keep)
+    src = markers.points
+    if consume and src.dtype == np.float64 and src.flags.writeable:
+        for j, c in enumerate(cols):  # the kept markers moved left, in place (c >= j)
+            if c != j:
+                src[:, j] = src[:, c]
+        pts = src[:, : cols.size]
+    else:
+        pts = src.copy() if cols.size == M else src[:, cols]
+    # gaps, jumps, trimmed edges and short runs: NaN (in place, no index arrays)
+    np.copyto(pts, np.nan, where=~(vis if cols.size == M else vis[:, cols])[..., None])
     info = dict(markers.info)
     info["clean"] = {
         "version": VERSION,
@@ -209,7 +245,7 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     }
     return replace(
         markers,
-        points=pts if keep.all() else pts[:, keep],
+        points=pts,
         labels=tuple(l for l, k in zip(markers.labels, keep) if k),
         stage="clean",
         info=info,

@@ -124,10 +124,12 @@ class _Merger:
     def __init__(self, markers: Markers, params: Params):
         self.p = params
         pts = np.asarray(markers.points, dtype=float)
-        vis = np.isfinite(pts).all(axis=2)
-        if np.isfinite(pts[~vis]).any():  # a partly missing sample is missing
+        fin = [np.isfinite(pts[..., c]) for c in range(3)]  # per coordinate: no (F, L, 3) temporaries
+        vis = fin[0] & fin[1] & fin[2]
+        if ((fin[0] | fin[1] | fin[2]) & ~vis).any():  # a partly missing sample is missing
             pts = pts.copy()
-            pts[~vis] = np.nan
+            np.copyto(pts, np.nan, where=~vis[..., None])
+        del fin
         self.points, self.vis = pts, vis
         self.rate = float(markers.rate) if markers.rate and markers.rate > 0 else 1.0
         self.F, self.L = vis.shape
