@@ -86,3 +86,19 @@ def test_fit_real_take_gives_bvh_or_a_documented_error(rel: str, tmp_path: Path)
         if all("All-NaN slice" in w for w in stray):
             pytest.xfail(STRAY_WARNING[rel])
     assert not stray, f"{rel}: fit emitted Python warnings: {stray}"
+
+
+def test_regression_a_thigh_marker_is_not_grouped_with_the_opposite_arm() -> None:
+    """CMU 07_01 (a 2.6 s walk): spectral clustering put RTHI with LSHO, LUPA, LELB and RSHO; every
+    segment is now rigid within the tolerance, so the thigh marker stands apart from the arm."""
+    src = REALDATA / "cmu" / "07_01.c3d"
+    if not src.is_file():
+        pytest.skip(MISSING)
+    from mocapskel import pipeline
+
+    seg = pipeline.run_until(src, "segment").artifact
+    short = [lab.split(":")[-1] for lab in seg.markers.labels]
+    g = {name: int(seg.group[i]) for i, name in enumerate(short)}
+    assert g["RTHI"] not in {g["LSHO"], g["LUPA"], g["LELB"], g["RSHO"]}
+    assert g["LTHI"] != g["LSHN"]  # thigh and shank of a walking leg are not one rigid body
+    assert seg.info["split"]  # what the clustering joined and the rigidity check took apart is reported

@@ -184,6 +184,23 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
     return skel
 
 
+#: Segments up to which the refinement uses ``Params.refine_frames`` frames; beyond, fewer (see below).
+REFINE_FULL_SEGMENTS = 15
+
+
+def refine_frame_count(frames: int, n_segments: int) -> int:
+    """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
+    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less).
+
+    An iteration costs about S^3 per frame (a segment's pose couples with every other's through
+    the constant offsets): this keeps a skeleton of 27 segments (a marker set with many markers
+    on joints, split into rigid groups) at the cost of one of 15.
+    """
+    if n_segments <= REFINE_FULL_SEGMENTS:
+        return frames
+    return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
+
+
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
@@ -195,7 +212,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
 
     pts = skel.joints.topology.segments.markers.points
     vis = np.isfinite(pts).all(-1)
-    use = pick_frames(vis, params.refine_frames, must=skel.rest_frame)
+    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names)), must=skel.rest_frame)
     if use.size < 10:
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))

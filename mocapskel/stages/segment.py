@@ -20,7 +20,7 @@ from ..artifacts import Markers, Segments
 from ..errors import DataError
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 1
+VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -156,6 +156,43 @@ def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
     return int(M - np.count_nonzero(average_linkage_heights(D) <= rigid_mm))
 
 
+def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
+    """(M,) labels 0.. of the average-linkage groups of ``std`` (M, M) cut at ``rigid_mm``.
+
+    Each group's markers vary in distance by at most ``rigid_mm`` on average
+    (the groups :func:`rigid_count` counts), numbered by their first marker.
+    """
+    M = std.shape[0]
+    D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
+    D = 0.5 * (D + D.T)
+    _, root = _average_linkage(D, rigid_mm)
+    _, lab = np.unique(root, return_inverse=True)
+    first = {}
+    return np.array([first.setdefault(int(g), len(first)) for g in lab.reshape(-1)], dtype=int) if M else lab
+
+
+def split_nonrigid(labels: np.ndarray, std: np.ndarray, rigid_mm: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Split every group of ``labels`` (M,) that is not rigid within ``rigid_mm`` into its rigid subgroups.
+
+    A group is rigid when its average-linkage dendrogram on the distance stds
+    ``std`` (M, M) joins all its markers at or below ``rigid_mm``
+    (:func:`rigid_groups`); otherwise its subgroups at that cut become groups
+    of their own (the first keeps the label). Returns the new labels and, for
+    every group split, the indices of its markers.
+    """
+    lab = np.array(labels, dtype=int)
+    parts = []
+    for g in np.unique(lab):
+        idx = np.flatnonzero(lab == g)
+        if idx.size < 2:
+            continue
+        sub = rigid_groups(std[np.ix_(idx, idx)], rigid_mm)
+        if sub.max() > 0:
+            parts.append(idx)
+            lab[idx[sub > 0]] = lab.max() + sub[sub > 0]
+    return lab, parts
+
+
 def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     """Merge heights (M - 1,) of average-linkage (UPGMA) clustering of a symmetric distance matrix (M, M).
 
@@ -163,20 +200,29 @@ def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     (the tests compare them), without importing scipy's clustering (a third
     of a second per run). O(M^3): a few milliseconds for a hundred markers.
     """
+    return _average_linkage(D, np.inf)[0]
+
+
+def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray]:
+    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index))."""
     D = np.array(D, dtype=float)
     M = D.shape[0]
     np.fill_diagonal(D, np.inf)
     size = np.ones(M)
-    heights = np.empty(max(M - 1, 0))
-    for n in range(M - 1):
+    root = np.arange(M)
+    heights = []
+    for _ in range(M - 1):
         i, j = divmod(int(np.argmin(D)), M)
-        heights[n] = D[i, j]
+        if not D[i, j] <= stop:
+            break
+        heights.append(D[i, j])
         row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])  # the merged cluster's mean distances
         D[i], D[:, i] = row, row
         D[i, i] = np.inf
         D[j], D[:, j] = np.inf, np.inf
         size[i] += size[j]
-    return heights
+        root[root == j] = i
+    return np.array(heights), root
 
 
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
@@ -260,6 +306,12 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         if best is None or cost < best[0] - 1e-12:
             best = (cost, si, res.labels)
     cost, si, lab = best
+    split = []
+    if params.n_segments is None:
+        # spectral clustering may join markers that are not rigid together (a short take that
+        # hardly moves some joints): split such a group into its rigid subgroups
+        lab, parts = split_nonrigid(lab, pooled, rigid_mm)
+        split = [[markers.labels[iu[i]] for i in idx] for idx in parts]
     group = np.full(M, -1, dtype=int)
     group[iu] = lab
     # number groups by the first marker in each, for stable output
@@ -284,6 +336,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         "sigma_mm": sigma,
         "left_out": [markers.labels[i] for i in np.flatnonzero(~use)],
         "groups": [[markers.labels[i] for i in np.flatnonzero(group == g)] for g in range(n)],
+        "split": split,
     }
     return Segments(markers=markers, group=group, dist_std=stds[si], eigvals=eig, info=info)
 
