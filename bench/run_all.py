@@ -14,6 +14,7 @@ BENCHES = [
     ("Joint-centre estimators against the papers", "bench.joints"),
     ("Passive data: merge-ids", "bench.passive"),
     ("Batches: local workers", "bench.batch"),
+    ("Real takes", "bench.realdata"),
 ]
 
 

@@ -309,8 +309,9 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     split = []
     if params.n_segments is None:
         # spectral clustering may join markers that are not rigid together (a short take that
-        # hardly moves some joints): split such a group into its rigid subgroups
-        lab, parts = split_nonrigid(lab, pooled, rigid_mm)
+        # hardly moves some joints): split such a group into its rigid subgroups — at the absolute
+        # tolerance, not the one scaled to a small subject (real skin moves more than 2 % of an arm)
+        lab, parts = split_nonrigid(lab, pooled, max(rigid_mm, params.rigid_mm))
         split = [[markers.labels[iu[i]] for i in idx] for idx in parts]
     group = np.full(M, -1, dtype=int)
     group[iu] = lab

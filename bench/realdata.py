@@ -1,0 +1,58 @@
+"""Every real take of ``../shared/realdata/`` through ``mocapskel fit``: what it makes of them.
+
+    python -m bench.realdata            # markdown to stdout (nothing when the folder is absent)
+
+No take has a reference skeleton, so this reports what can be judged without
+one: whether the fit succeeds (or the documented error), how many segments it
+finds and how many clustered groups it had to split for rigidity, how well
+the fitted skeleton explains the markers (IK marker rms), and the time. Each
+take runs ``mocapskel fit`` in a fresh process.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench.common import REPO, table
+
+REALDATA = REPO.parent / "shared" / "realdata"
+
+
+def main() -> None:
+    if not REALDATA.is_dir():
+        print("(the real-take folder is absent: nothing measured)\n")
+        return
+    files = sorted(p for p in REALDATA.rglob("*") if p.is_file() and p.suffix.lower() in (".c3d", ".trc"))
+    exe = str(Path(sys.executable).parent / "mocapskel")
+    rows = []
+    for p in files:
+        rel = str(p.relative_to(REALDATA))
+        with tempfile.TemporaryDirectory() as d:
+            rep = Path(d) / "r.json"
+            t = time.perf_counter()
+            r = subprocess.run([exe, "fit", str(p), "-o", str(Path(d) / "o.bvh"), "--report", str(rep), "--no-cache", "-q"],
+                               capture_output=True, text=True)
+            wall = time.perf_counter() - t
+            if r.returncode == 0:
+                d_ = json.loads(rep.read_text())
+                ref = d_.get("refinement") or {}
+                rows.append([rel, "ok", d_["input"]["frames"], d_["input"]["markers"], len(d_["segments"]),
+                             len(d_.get("segments_split", [])), round(d_["ik"]["marker_rms_mm"], 1),
+                             round(ref["marker_rms_mm_after"], 1) if ref else "", round(wall, 1)])
+            else:
+                err = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
+                rows.append([rel, f"exit {r.returncode}: {err.split(': ', 2)[-1][:90]}", "", "", "", "", "", "", round(wall, 1)])
+        print(f"  {rows[-1]}", file=sys.stderr)
+    print("Every take of `../shared/realdata/` (see its README), `mocapskel fit TAKE -o out.bvh --no-cache` in a "
+          "fresh process. IK rms: marker rms residual of the fitted skeleton over the take; refined: the same on the "
+          "refinement's frames. Groups split: clustered groups that were not rigid within the tolerance.\n")
+    print(table(["take", "result", "frames", "markers", "segments", "groups split", "IK rms (mm)", "refined rms (mm)",
+                 "wall (s)"], rows))
+
+
+if __name__ == "__main__":
+    main()
