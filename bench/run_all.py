@@ -4,7 +4,6 @@ from __future__ import annotations
 import datetime
 import subprocess
 import sys
-from pathlib import Path
 
 from bench.common import REPO, machine
 

@@ -9,7 +9,7 @@ import numpy as np
 from .. import artifacts
 from ..errors import InputError
 from .main import cli
-from .options import common, make_read, read_options
+from .options import common, read_options
 
 
 def describe_markers(m: artifacts.Markers) -> list[str]:

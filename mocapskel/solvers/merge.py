@@ -709,7 +709,7 @@ def triangle_links(
     """
     from itertools import combinations, permutations
 
-    F, T = int(n_frames), first.size
+    F = int(n_frames)
     seen = last >= 0
     ends = np.flatnonzero(seen & (last < F - 1))
     starts = np.flatnonzero(seen & (first > 0))

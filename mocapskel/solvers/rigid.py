@@ -675,7 +675,7 @@ def _rodrigues(rv: np.ndarray) -> np.ndarray:
     a = np.where(small, 1 - th2 / 6, np.sin(th) / th)
     b = np.where(small, 0.5 - th2 / 24, (1 - np.cos(th)) / (th * th))
     R = np.empty(rv.shape + (3,))
-    bx, by, bz = b * x, b * y, b * z
+    bx, by = b * x, b * y
     ax, ay, az = a * x, a * y, a * z
     R[:, 0, 0] = 1 - b * (y * y + z * z)
     R[:, 1, 1] = 1 - b * (x * x + z * z)

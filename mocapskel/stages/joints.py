@@ -130,7 +130,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 c, side = sphere_centre(groups[a], groups[b])
                 if side is not None:
                     centres[:, e], methods[e], done[e] = c, "sphere", True
-                    per_joint[e]["why"] = f"a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
+                    per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
                     continue
             fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True

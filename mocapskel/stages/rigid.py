@@ -86,14 +86,9 @@ def _common_prefix(labels: list[str]) -> str:
 
 def run(joints: Joints, params: Params = Params()) -> Skeleton:
     """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s."""
-    topo = joints.topology
-    seg = topo.segments
-    mk = seg.markers
-    pts = mk.points
-    F, M, _ = pts.shape
+    seg, mk, pts, edges = _parts(joints)
+    F = pts.shape[0]
     S = seg.n_segments
-    edges = topo.edges
-    E = edges.shape[0]
     parent = np.full(S, -1, dtype=int)
     parent_edge = np.full(S, -1, dtype=int)
     for e, (a, b) in enumerate(edges):
@@ -126,16 +121,18 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     return _with_lengths(skel)
 
 
+def _parts(joints: Joints):
+    """(segments, markers, their points, the tree's edges) of a joints artifact."""
+    seg = joints.topology.segments
+    return seg, seg.markers, seg.markers.points, joints.topology.edges
+
+
 def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, parent_edge: np.ndarray,
          order: np.ndarray, params: Params) -> Skeleton:
     """Per-segment rigid fits of markers and joint ``centres`` (F, E, 3) into one skeleton (no refinement)."""
-    topo = joints.topology
-    seg = topo.segments
-    mk = seg.markers
-    pts = mk.points
+    seg, mk, pts, edges = _parts(joints)
     F, M, _ = pts.shape
     S = seg.n_segments
-    edges = topo.edges
     use = np.unique(np.concatenate([np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int), [rest]]))
     rest_i = int(np.searchsorted(use, rest))
     origin = np.full((S, 3), np.nan)
