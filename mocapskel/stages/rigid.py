@@ -16,6 +16,7 @@ import numpy as np
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
 from ..io.bvh import depth_first_order, sanitize_names
+from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
@@ -104,20 +105,30 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             raise DataError(f"rest frame {rest} is outside the take's {F} frames — choose a frame from 0 to {F - 1}", mk.source or None)
     skel = _fit(joints, joints.centres, rest, parent, parent_edge, order, params)
     if params.refine_frames > 0:
-        skel = refine(skel, params, joints.centres)
-        if joints.alt_centres is not None and "refined" in skel.info:
-            # a second start (the joints stage's framework trajectories): the fit of lower cost wins
-            try:
-                alt = refine(_fit(joints, joints.alt_centres, rest, parent, parent_edge, order, params), params,
-                             joints.alt_centres)
-            except DataError:
-                alt = skel
-            a, b = skel.info["refined"]["marker_rms_mm_after"], alt.info.get("refined", {}).get("marker_rms_mm_after")
-            win = alt if b is not None and b < a else skel
-            info = dict(win.info)
-            info["refined"] = dict(info["refined"], start="framework" if win is alt else "joints",
-                                   marker_rms_mm_starts={"joints": a, "framework": b})
-            skel = replace(win, info=info)
+        if joints.alt_centres is None:
+            skel = refine(skel, params, joints.centres)
+        else:
+            # a second start (the joints stage's framework trajectories): the fit of lower cost wins;
+            # the two are independent, so they run side by side on the cores
+            def from_start(which: int) -> Skeleton | None:
+                if which == 0:
+                    return refine(skel, params, joints.centres)
+                try:
+                    return refine(_fit(joints, joints.alt_centres, rest, parent, parent_edge, order, params), params,
+                                  joints.alt_centres)
+                except DataError:
+                    return None
+
+            one, two = run_blocks(from_start, [0, 1])
+            if "refined" in one.info:
+                a = one.info["refined"]["marker_rms_mm_after"]
+                b = two.info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
+                win = two if b is not None and b < a else one
+                info = dict(win.info)
+                info["refined"] = dict(info["refined"], start="framework" if win is two else "joints",
+                                       marker_rms_mm_starts={"joints": a, "framework": b})
+                one = replace(win, info=info)
+            skel = one
     return _with_lengths(skel)
 
 
