@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 6
+VERSION = 7
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -59,6 +59,10 @@ class Params:
     hinge_ratio: float = 0.4
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints..."""
+    hinge_plane: bool = False
+    """Move a hinge's centre along its axis into the plane of its neighbours along the chain
+    (off: the centre stays on the axis nearest the two segments' markers, which measured
+    better on real takes — on real skin the neighbours' own errors carry over)."""
     hinge_min_sigma_mm: float = 0.1
     """...and only when SCoRE's standard error along the axis exceeds this (noise-free
     data fix even a near-hinge exactly)."""
@@ -168,7 +172,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 per_joint[e]["note"] = tree.reason[e]
             if params.method == "score":
                 per_joint[e]["note"] = f"SCoRE needs 3+ markers on both segments; {tree.method[e]} used"
-    for e, (fit, R1) in hinges.items():
+    for e, (fit, R1) in (hinges.items() if params.hinge_plane else ()):
         centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e)
         if shift is not None:
             per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
@@ -236,7 +240,7 @@ def _why(method: str, category: tuple[str, ...], edge: np.ndarray) -> str:
 
 
 def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
-    """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints.
+    """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints along the chain.
 
     A hinge's centre is undetermined along its axis. Anatomically (a knee
     between hip and ankle, an elbow between shoulder and wrist) the centre lies
@@ -247,7 +251,14 @@ def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, 
     Returns (centre (F, 3), shift or None).
     """
     a, b = edges[e]
-    nb = [k for k in range(edges.shape[0]) if k != e and (a in edges[k] or b in edges[k])]
+    # the neighbours along a chain: the other joint of a segment with two joints (a thigh's hip for
+    # its knee); a segment with more (a pelvis: both hips and the lumbar joint) says nothing about
+    # where along the axis this one sits, a leaf has no other joint
+    nb = []
+    for s in (a, b):
+        ks = [k for k in range(edges.shape[0]) if k != e and s in edges[k]]
+        if len(ks) == 1:
+            nb.extend(ks)
     base = centres[:, e].copy()
     if not nb:
         return base, None

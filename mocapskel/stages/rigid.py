@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 4
+VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,11 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
+    joint_prior: float = 0.01
+    """Weight (per frame) of the prior that holds each joint where the joints stage put it
+    relative to the markers of its two segments, in the refinement: negligible where the
+    markers fix the joint, decisive along directions they do not (see
+    :func:`~mocapskel.solvers.calibrate.refine_skeleton`)."""
     hold_hinges: bool = True
     """Joints the joints stage placed as hinges keep their position along the hinge axis
     in the refinement (the markers hardly fix it; the joints stage put it in the plane
@@ -229,7 +234,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
-                          hold_along=hold)
+                          hold_along=hold, joint_prior=params.joint_prior)
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],
