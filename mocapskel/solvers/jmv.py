@@ -707,6 +707,22 @@ def jmv_joint_long(
 # --------------------------------------------------------------------------- topology
 
 
+def distance_penalty(info: dict, k: float, fallback: float = 0.01) -> float:
+    """Kirk's distance penalty alpha scaled to a take: ``k`` skin variances per median marker distance.
+
+    info : the segment stage's info, with ``skin_level_mm`` (the take's own level of skin motion
+    and noise, a distance std) and ``size_mm`` (the median distance between markers). A joint as
+    far from its markers as markers are from each other then costs ``k`` times the variance that
+    skin motion alone gives; where the motion fixes the joint, its cost outweighs that, and where
+    it does not (a hinge's axis, a joint the take barely moves) the joint stays near its markers
+    instead of running off along the free direction. ``fallback`` when the info has no level.
+    """
+    level, size = info.get("skin_level_mm"), info.get("size_mm")
+    if not level or not size or not (level > 0 and size > 0):
+        return fallback
+    return float(k * level**2 / size)
+
+
 def pair_cost(
     markers_a: ArrayLike,
     markers_b: ArrayLike,

@@ -35,12 +35,12 @@ from ..artifacts import Joints, Topology
 from ..errors import DataError
 from ..parallel import run_blocks
 from ..solvers.hybrid import solve_tree
-from ..solvers.jmv import jmv_joint_long, joint_cost
+from ..solvers.jmv import distance_penalty, jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 7
+VERSION = 8
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -51,8 +51,13 @@ METHODS = ("auto", "jmv", "mtb", "sphere", "score")
 @dataclass(frozen=True)
 class Params:
     method: str = "auto"
-    alpha: float = 0.0
-    """Kirk's distance penalty in the final fit (0: dropped, as the paper's discussion advises)."""
+    alpha: float | None = None
+    """Kirk's distance penalty in the final fit; None: scaled to the take (``alpha_k`` skin
+    variances per median marker distance, see :func:`~mocapskel.solvers.jmv.distance_penalty`).
+    Kirk drops it in the final pass but notes it helps where the motion does not exercise
+    every degree of freedom — on real takes, most joints: a hinge's centre, or a joint
+    between two-marker segments, otherwise slides off along what the markers do not fix."""
+    alpha_k: float = 2.0
     min_turn_deg: float = 5.0
     """Joints whose segments turn less than this relative to each other (95th
     percentile over frames) are reported as poorly determined."""
@@ -87,6 +92,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     E = edges.shape[0]
     F = pts.shape[0]
     per_joint: list[dict] = [{} for _ in range(E)]
+    alpha = params.alpha if params.alpha is not None else distance_penalty(seg.info, params.alpha_k, 0.0)
     diag = spread_frames(F, params.diag_frames)
     warnings: list[str] = []
     centres = np.full((F, E, 3), np.nan)
@@ -136,34 +142,34 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     centres[:, e], methods[e], done[e] = c, "sphere", True
                     per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
                     continue
-            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
             # Hang's framework may reach a lower joint cost (exact data): then it wins
             if tree is None:
-                tree = solve_tree(groups, edges, alpha=params.alpha)
+                tree = solve_tree(groups, edges, alpha=alpha)
             if np.isfinite(tree.centres[:, e]).any():
                 alt_from_tree.append(e)
             both = np.concatenate([groups[a], groups[b]], axis=1)
             if np.isfinite(tree.centres[:, e]).any() and np.isfinite(fit.centre).any():
-                q_tree = joint_cost(tree.centres[:, e], both, alpha=0.0)
-                q_jmv = joint_cost(fit.centre, both, alpha=0.0)
+                q_tree = joint_cost(tree.centres[:, e], both, alpha=alpha)
+                q_jmv = joint_cost(fit.centre, both, alpha=alpha)
                 if q_tree < q_jmv:
                     centres[:, e], methods[e] = tree.centres[:, e], tree.method[e]
                     per_joint[e]["why"] = _why(tree.method[e], tree.category, edges[e]) + "; lower joint cost than JMV"
                     per_joint[e].pop("note", None)
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
-            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
             centres[:, e] = fit.centre
             methods[e] = "jmv"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
         done[:] = True
     if not done.all():  # the hybrid framework (MTB, propagation, JMV) for the rest
-        tree = solve_tree(groups, edges, alpha=params.alpha)
+        tree = solve_tree(groups, edges, alpha=alpha)
         for e in np.flatnonzero(~done):
             centres[:, e] = tree.centres[:, e]
             methods[e] = tree.method[e]

@@ -26,7 +26,8 @@ VERSION = 3
 @dataclass(frozen=True)
 class Params:
     n_segments: int | None = None
-    """Number of segments; None: from the eigen-gap, split further until every group is rigid."""
+    """Number of segments (spectral clustering into that many); None: the rigid groups at the
+    take's own tolerance (average linkage), lone markers then given a place."""
     interval_s: float = 0.5
     """Sampling interval (Kirk: half a second)."""
     jitter_s: float = 0.1
@@ -143,6 +144,9 @@ def affinity(std: np.ndarray, sigma: float) -> np.ndarray:
 #: A marker whose distances to its partners vary by less than this fraction of the median
 #: marker distance is a point computed from a model, not a measured marker.
 COMPUTED_FRAC = 1e-4
+#: A marker's second partner varying more than this many times its first is across a joint
+#: (the marker sits on a two-marker segment): the first partner's std is its level.
+ACROSS_RATIO = 4.0
 
 SCALE_PERCENTILE = 25
 SIGMA_FRACTIONS = (0.06, 0.12, 0.25, 0.5, 1.0)
@@ -170,7 +174,7 @@ def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
     return int(M - np.count_nonzero(average_linkage_heights(D) <= rigid_mm))
 
 
-def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
+def rigid_groups(std: np.ndarray, rigid_mm: float, complete: bool = False) -> np.ndarray:
     """(M,) labels 0.. of the average-linkage groups of ``std`` (M, M) cut at ``rigid_mm``.
 
     Each group's markers vary in distance by at most ``rigid_mm`` on average
@@ -179,7 +183,7 @@ def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
     M = std.shape[0]
     D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
     D = 0.5 * (D + D.T)
-    _, root = _average_linkage(D, rigid_mm)
+    _, root = _average_linkage(D, rigid_mm, complete)
     _, lab = np.unique(root, return_inverse=True)
     first = {}
     return np.array([first.setdefault(int(g), len(first)) for g in lab.reshape(-1)], dtype=int) if M else lab
@@ -217,8 +221,10 @@ def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     return _average_linkage(D, np.inf)[0]
 
 
-def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray]:
-    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index))."""
+def _average_linkage(D: np.ndarray, stop: float, complete: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index)).
+
+    ``complete``: complete linkage instead (a cluster's distance is its largest pair's)."""
     D = np.array(D, dtype=float)
     M = D.shape[0]
     np.fill_diagonal(D, np.inf)
@@ -230,7 +236,10 @@ def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray
         if not D[i, j] <= stop:
             break
         heights.append(D[i, j])
-        row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])  # the merged cluster's mean distances
+        if complete:  # the merged cluster's largest distances
+            row = np.maximum(D[i], D[j])
+        else:  # the merged cluster's mean distances
+            row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])
         D[i], D[:, i] = row, row
         D[i, i] = np.inf
         D[j], D[:, j] = np.inf, np.inf
@@ -244,8 +253,8 @@ def skin_level(std: np.ndarray, floor: float = 0.0) -> float:
 
     The median, over markers, of each marker's std to its second most rigid partner:
     a marker on a segment of three or more markers has two partners that vary only by
-    skin motion and noise; on a two-marker segment the second is across a joint, which
-    the median over the markers of a whole body does not notice. Markers whose second
+    skin motion and noise; on a two-marker segment the second is across a joint, so
+    where the second varies more than ``ACROSS_RATIO`` times the first, the first counts. Markers whose second
     partner varies by less than ``floor`` are left out (points computed from a model,
     not measured: a take may carry them rigid to a hundredth of a millimetre). 0 when
     nothing varies.
@@ -256,8 +265,9 @@ def skin_level(std: np.ndarray, floor: float = 0.0) -> float:
     D = np.where(np.eye(M, dtype=bool), np.inf, np.nan_to_num(std, nan=np.inf))
     D.sort(axis=1)
     second = D[:, min(1, M - 2)]
+    second = np.where(second <= ACROSS_RATIO * D[:, 0], second, D[:, 0])
     second = second[np.isfinite(second)]
-    if (second > floor).any():
+    if (second > floor).sum() * 2 > second.size:  # a few computed points among measured markers
         second = second[second > floor]
     return float(np.median(second)) if second.size else 0.0
 
@@ -418,7 +428,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         md = np.nanmean(first, axis=0)  # mean distance of every marker pair
     size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
     level = skin_level(pooled, COMPUTED_FRAC * size)
-    tau = params.rigid_k * level
+    tau = max(params.rigid_k * level, COMPUTED_FRAC * size)  # exact data: rigid to rounding
     if k is None and not (np.nanpercentile(off, 95) > tau if np.isfinite(off).any() else False):
         raise DataError(
             f"all markers move as one rigid body (95 % of marker distances vary by less than {tau:.3g} mm,"

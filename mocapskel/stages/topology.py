@@ -18,7 +18,7 @@ import numpy as np
 
 from ..artifacts import Segments, Topology
 from ..errors import DataError
-from ..solvers.jmv import pair_cost
+from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
 VERSION = 3
@@ -137,21 +137,13 @@ def tree_centre(n_nodes: int, edges: np.ndarray, size: dict[int, int]) -> int:
     return min(cands, key=lambda s: (sum(dist[s]), -size.get(s, 0), s))
 
 
-def auto_alpha(info: dict, alpha_k: float, fallback: float = 0.01) -> float:
-    """The distance penalty from the segment stage's skin level and marker spread (see Params.alpha)."""
-    level, size = info.get("skin_level_mm"), info.get("size_mm")
-    if not level or not size or not (level > 0 and size > 0):
-        return fallback
-    return float(alpha_k * level**2 / size)
-
-
 def run(segments: Segments, params: Params = Params()) -> Topology:
     """Find the tree of segments and direct it away from the root."""
     pts = segments.markers.points
     S = segments.n_segments
     if S < 2:
         raise DataError("fewer than two segments — nothing to connect", segments.markers.source or None)
-    alpha = params.alpha if params.alpha is not None else auto_alpha(segments.info, params.alpha_k)
+    alpha = params.alpha if params.alpha is not None else distance_penalty(segments.info, params.alpha_k)
     vis = _visible(pts)
     frames = subsample(pts, params.n_frames, visible=vis)
     # markers of each segment seen in each frame: one product with the (M, S) membership
