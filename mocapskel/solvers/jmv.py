@@ -785,4 +785,11 @@ def pair_cost(
     if tried and np.isfinite(best):
         return float(best)
     fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-8)
-    return float(fit.cost)
+    if not np.isfinite(fit.cost):
+        return float(fit.cost)
+    # the joint is free in every frame (3 unknowns a frame): of n markers' distances only n - 3
+    # are checked, so the mean variance is scaled to what n - 3 redundant distances leave, as an
+    # unbiased variance is — otherwise two groups of one or two markers join anything cheaply
+    n = a.shape[1] + b.shape[1]
+    var = joint_cost(fit.centre, np.concatenate([a, b], axis=1), alpha=0.0)
+    return float(var * n / max(n - 3, 0.5) + (fit.cost - var))
