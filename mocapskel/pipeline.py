@@ -140,7 +140,8 @@ def run_until(
         p = params.get(stage) or mod.Params()
         k = stage_key(stage, mod.VERSION, p, run.key)
         t = time.perf_counter()
-        hit = cache.get(k, stage) if key != "memory" else None
+        # the upstream artifact is the one in hand: an entry's reference is checked against its key, never followed
+        hit = cache.get(k, stage, upstream=(run.key, run.artifact)) if key != "memory" else None
         if hit is not None:
             run.artifact = hit
             run.cached.append(stage)
