@@ -19,7 +19,7 @@ from typing import Any, Callable
 from . import artifacts
 from .artifacts import Markers
 from .cache import Cache, file_key, stage_key
-from .errors import InputError, UsageError
+from .errors import DataError, InputError, UsageError
 
 log = logging.getLogger("mocapskel")
 
@@ -154,7 +154,14 @@ def run_until(
                 run.artifact = None
                 run.artifact = mod.run(before, p, consume=True)
             else:
-                run.artifact = mod.run(before, p)
+                try:
+                    run.artifact = mod.run(before, p)
+                except DataError as e:
+                    if stage not in ("segment", "topology"):
+                        raise
+                    from .diagnose import explain
+
+                    raise explain(before, e) from None  # what is wrong with the take, not its consequence
             if key != "memory":
                 # the upstream artifact is stored by reference when it is itself a cache entry
                 up = (before, before_key) if stage != STAGES[_index(have) + 1] else None
