@@ -490,6 +490,7 @@ def validate(obj: Any) -> None:
              "skeleton": "joints", "motion": "skeleton"}[o.kind]
         o = getattr(chain[-1], o) if o else None
         _need(o is None or type(o) in ARTIFACT_TYPES.values(), f"{chain[-1].kind} holds something that is not an artifact")
+    _need(chain[-1].kind == "markers", f"the {chain[-1].kind} artifact does not carry the markers it was computed from")
     F = M = S = E = None
     for o in reversed(chain):
         _info(o)
