@@ -41,35 +41,35 @@ _BLOCK = 4_000_000  # distances per block (frames x pairs)
 
 
 def _pair_stats(points: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, M) largest distance and (M, M) distance std over ``frames`` (NaN where never seen together)."""
+    """(M, M) largest distance and (M, M) distance std over ``frames`` (NaN where never seen together).
+
+    Distances from the Gram matrix of every frame (one batched product), in blocks of frames.
+    """
     M = points.shape[1]
-    iu, ju = np.triu_indices(M, 1)
-    dmax = np.full(iu.size, np.nan)
-    s1 = np.zeros(iu.size)
-    s2 = np.zeros(iu.size)
-    n = np.zeros(iu.size)
-    step = max(1, _BLOCK // max(iu.size, 1))
+    dmax = np.full((M, M), -np.inf)
+    s1 = np.zeros((M, M))
+    s2 = np.zeros((M, M))
+    n = np.zeros((M, M))
+    step = max(1, _BLOCK // max(M * M, 1))
     for lo in range(0, frames.size, step):
-        P = points[frames[lo:lo + step]]  # (f, M, 3)
-        d = np.sqrt(((P[:, iu] - P[:, ju]) ** 2).sum(axis=-1))  # (f, pairs), NaN where unseen
+        P = points[frames[lo:lo + step]]  # (f, M, 3), NaN where unseen
+        sq = (P**2).sum(axis=-1)  # (f, M)
+        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * (P @ P.transpose(0, 2, 1))
+        d = np.sqrt(np.maximum(d2, 0.0))  # NaN stays NaN: a pair with an unseen marker
         ok = np.isfinite(d)
-        with np.errstate(invalid="ignore"):
-            dmax = np.fmax(dmax, np.where(ok, d, -np.inf).max(axis=0) if d.shape[0] else dmax)
         dz = np.where(ok, d, 0.0)
+        dmax = np.maximum(dmax, np.where(ok, d, -np.inf).max(axis=0))
         s1 += dz.sum(axis=0)
         s2 += (dz**2).sum(axis=0)
         n += ok.sum(axis=0)
-    dmax[n == 0] = np.nan
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s1 / n
         std = np.sqrt(np.maximum(s2 / n - mean**2, 0.0))
-    out_max = np.full((M, M), np.nan)
-    out_std = np.full((M, M), np.nan)
-    out_max[iu, ju] = out_max[ju, iu] = dmax
-    out_std[iu, ju] = out_std[ju, iu] = std
-    np.fill_diagonal(out_max, 0.0)
-    np.fill_diagonal(out_std, 0.0)
-    return out_max, out_std
+    dmax[n == 0] = np.nan
+    std[n == 0] = np.nan
+    np.fill_diagonal(dmax, 0.0)
+    np.fill_diagonal(std, 0.0)
+    return dmax, std
 
 
 def split_subjects(markers: Markers) -> list[np.ndarray] | None:

@@ -264,3 +264,27 @@ def test_report_with_generated_json(genuine: dict[str, Path], data) -> None:
     f = TMP / "gen.json"
     f.write_text(json.dumps(small))
     assert_clean_end(invoke("compare", genuine["report"], f), allowed=(0, 3))
+
+
+# --------------------------------------------------------------------------- BVH
+
+bvh_tokens = st.one_of(st.sampled_from(["{", "}", "ROOT", "JOINT", "End", "Site", "OFFSET", "CHANNELS", "0", "3", "6",
+                                        "Xrotation", "Frames:", "Frame", "Time:", "MOTION", "HIERARCHY", "nan", "-1",
+                                        "1e400", ""]),
+                       odd_floats.map(repr), st.text(alphabet="0123456789.-e", max_size=6))
+
+
+@FUZZ
+@given(data=st.data())
+def test_bvh_with_generated_tokens(genuine: dict[str, Path], data) -> None:
+    lines = (genuine["take"].parent / "o.bvh").read_text().split("\n")[:200]
+    lines[lines.index("MOTION") + 1] = f"Frames: {len([ln for ln in lines[lines.index('MOTION') + 3:] if ln.strip()])}"
+    for _ in range(data.draw(st.integers(1, 4), label="edits")):
+        i = data.draw(st.integers(0, len(lines) - 1), label="line")
+        toks = lines[i].split() or [""]
+        j = data.draw(st.integers(0, len(toks) - 1), label="token")
+        toks[j] = data.draw(bvh_tokens, label="new token")
+        lines[i] = " ".join(toks)
+    f = TMP / "gen.bvh"
+    f.write_text("\n".join(lines) + "\n")
+    assert_clean_end(invoke("inspect", f), allowed=(0, 3))
