@@ -1,7 +1,6 @@
 """``mocapskel inspect``: what a take, artifact or BVH file holds."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 import numpy as np
