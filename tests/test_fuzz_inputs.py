@@ -1,4 +1,4 @@
-"""Hypothesis fuzz of every reader and loader through the command line (issue 16).
+"""Hypothesis fuzz of every reader and loader through the command line.
 
 Generated C3D headers and parameters, TRC headers, ``.npz`` artifacts with
 arrays swapped for generated ones, ``.skel`` and report JSON with fields swapped

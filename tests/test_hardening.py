@@ -1,4 +1,4 @@
-"""Odd inputs beyond the usual ones, each a regression test named after the case (issue 16).
+"""Odd inputs beyond the usual ones, each a regression test named after the case.
 
 Every case ends in its documented exit code (2 usage, 3 bad input, 4 the data
 cannot support a skeleton; never 1, never a hang) and one line

@@ -1,4 +1,4 @@
-"""Several subjects in one take (issue 16): found from the data, each fitted on its own.
+"""Several subjects in one take: found from the data, each fitted on its own.
 
 A take with two generated people 3 m apart (labels ``A:…`` and ``B:…``) once
 took 140 s and gave one skeleton of 58 segments. Now each subject's markers
