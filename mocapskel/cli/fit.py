@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import click
 
@@ -15,13 +16,19 @@ from .options import bvh_options, cache_options, check_output, common, fit_optio
 log = logging.getLogger("mocapskel")
 
 
-def write_markers_out(path, motion, input_path, read) -> None:
-    """The take's markers (as read) plus one virtual marker per joint centre, as C3D or TRC."""
+def write_markers_out(path, motion, input_path, read, labels=None) -> None:
+    """The take's markers (as read; only ``labels``, when given) plus one virtual marker per joint centre, as C3D or TRC."""
+    from dataclasses import replace
+
     from ..io.markers import write_markers
     from ..kinematics import with_joint_markers
 
     markers, _ = pipeline.read_input(input_path, read)
     markers = pipeline.artifacts.markers_of(markers)
+    if labels is not None:  # one subject of several
+        keep = set(labels)
+        idx = [i for i, l in enumerate(markers.labels) if l in keep]
+        markers = replace(markers, points=markers.points[:, idx], labels=tuple(markers.labels[i] for i in idx))
     if markers.n_frames != motion.root_pos.shape[0]:  # pragma: no cover - same take
         raise ValueError("markers and motion differ in frame count")
     # keep only the labels the fit used, so that gaps and cleaning are as solved
@@ -69,26 +76,47 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         require_matplotlib()
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
-    b = res.bvh
+    several = len(res.subjects) > 1
+    fits = res.subjects if several else [res]
+    for r in fits:  # one subject: the names as given; several: OUT_1.bvh, OUT_2.bvh … and likewise every output
+        r.report.setdefault("outputs", {})
+        for what, path in (("bvh", output), ("report", report_path), ("skeleton", skeleton_out),
+                           ("markers", markers_out), ("html", html_path)):
+            if path:
+                r.report["outputs"][what] = numbered(path, r.report["subject"]["index"]) if several else str(path)
+        if several:
+            for item in r.report["subjects"]:
+                item["bvh"] = numbered(output, item["index"])
     with AtomicOutputs() as out:  # every output appears at the end, or none does
-        write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-        if report_path:
-            write_report(out.stage(report_path), res.report)
-        if skeleton_out:
-            from ..io.skeleton import write_skeleton
+        for r in fits:
+            o = r.report["outputs"]
+            b = r.bvh
+            write_bvh(out.stage(o["bvh"]), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+            if report_path:
+                write_report(out.stage(o["report"]), r.report)
+            if skeleton_out:
+                from ..io.skeleton import write_skeleton
 
-            write_skeleton(out.stage(skeleton_out), res.motion.skeleton, source=res.report["input"]["file"])
-        if markers_out:
-            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
-        if html_path:
-            from .report import write_html_report
+                write_skeleton(out.stage(o["skeleton"]), r.motion.skeleton, source=r.report["input"]["file"])
+            if markers_out:
+                labels = r.motion.skeleton.labels if several else None
+                write_markers_out(out.stage(o["markers"]), r.motion, input, make_read(exclude, include), labels)
+            if html_path:
+                from .report import write_html_report
 
-            write_html_report(out.stage(html_path), res)
-    ik = res.report["ik"]
-    rms = ik.get("marker_rms_mm")
-    log.info(
-        "wrote %s: %d segments, %d frames, marker rms %s mm (%.1f s)",
-        output, len(b.skeleton.names), b.root_pos.shape[0],
-        f"{rms:.2f}" if rms is not None else "n/a", res.run.seconds.get("total", 0.0),
-    )
-    say_warnings(res.report.get("warnings", []))
+                write_html_report(out.stage(o["html"]), r)
+    for r in fits:
+        b = r.bvh
+        rms = r.report["ik"].get("marker_rms_mm")
+        log.info(
+            "wrote %s: %d segments, %d frames, marker rms %s mm (%.1f s)",
+            r.report["outputs"]["bvh"], len(b.skeleton.names), b.root_pos.shape[0],
+            f"{rms:.2f}" if rms is not None else "n/a", r.run.seconds.get("total", 0.0),
+        )
+    say_warnings([w for r in fits for w in r.report.get("warnings", [])])
+
+
+def numbered(path, index: int) -> str:
+    """``take.bvh`` → ``take_2.bvh``: the output of one subject of several."""
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}_{index}{p.suffix}"))

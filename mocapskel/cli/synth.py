@@ -13,14 +13,36 @@ from .options import check_output, common
 log = logging.getLogger("mocapskel")
 
 
+#: Chains the generator can always build: markers per segment (they must stay 0.1 link lengths
+#: apart around the bone) and segments.
+MAX_CHAIN_MARKERS = 20
+MAX_CHAIN_SEGMENTS = 50
+
+
 def _counts(value: str) -> tuple[int, ...]:
     try:
         c = tuple(int(x) for x in value.replace(",", "-").split("-") if x)
     except ValueError:
-        raise click.BadParameter(f"{value!r} is not like 4-3-3") from None
+        raise click.BadParameter(f"{value!r} is not like 4-3-3 — give markers per segment joined by '-'", param_hint="'--counts'") from None
     if len(c) < 2 or min(c) < 1:
-        raise click.BadParameter("a chain needs at least 2 segments with at least 1 marker each")
+        raise click.BadParameter("a chain needs at least 2 segments with at least 1 marker each — give e.g. 4-3-3",
+                                 param_hint="'--counts'")
+    if max(c) > MAX_CHAIN_MARKERS or len(c) > MAX_CHAIN_SEGMENTS:
+        raise click.BadParameter(
+            f"at most {MAX_CHAIN_MARKERS} markers per segment and {MAX_CHAIN_SEGMENTS} segments (got {value!r}) — use smaller counts",
+            param_hint="'--counts'")
     return c
+
+
+def _finite(lo: float, hi: float):
+    """A click callback: a float from ``lo`` to ``hi`` (NaN and inf refused; click's FloatRange lets NaN through)."""
+
+    def check(ctx, param, value):
+        if value is not None and not (lo <= value <= hi):
+            raise click.BadParameter(f"{value:g} is not from {lo:g} to {hi:g} — give a value in that range")
+        return value
+
+    return check
 
 
 @cli.command("synth")
@@ -28,17 +50,17 @@ def _counts(value: str) -> tuple[int, ...]:
 @click.option("-o", "--output", "output", required=True, type=click.Path(), help="Take to write (.c3d or .trc).")
 @click.option("--truth", "truth_path", type=click.Path(), default=None, help="Ground truth .npz [default: OUTPUT with .truth.npz].")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--frames", type=click.IntRange(min=2), default=7200, show_default=True)
-@click.option("--rate", type=click.FloatRange(min=1e-3), default=120.0, show_default=True, help="Frames per second (human, linkage).")
+@click.option("--frames", type=click.IntRange(min=2, max=1_000_000), default=7200, show_default=True)
+@click.option("--rate", type=float, callback=_finite(1.0, 100_000.0), default=120.0, show_default=True, help="Frames per second (human, linkage; 1 to 100,000).")
 @click.option("--motion", type=click.Choice(["rom", "walk"]), default="rom", show_default=True, help="Human: what the subject does.")
 @click.option("--counts", default="4-3-3", show_default=True, help="Chain: markers per segment.")
-@click.option("--link-length", type=float, default=300.0, show_default=True, help="Chain: joint-to-joint length (mm).")
+@click.option("--link-length", type=float, callback=_finite(1.0, 100_000.0), default=300.0, show_default=True, help="Chain: joint-to-joint length (mm, 1 to 100,000).")
 @click.option("--markers-per-segment", type=click.IntRange(min=1), default=None, help="Human: markers on each segment [default: 48-marker set].")
-@click.option("--scale", type=click.FloatRange(min=0.1), default=1.0, show_default=True, help="Human: body size factor.")
+@click.option("--scale", type=float, callback=_finite(0.1, 100.0), default=1.0, show_default=True, help="Human: body size factor.")
 @click.option("--subject-seed", type=int, default=None, help="Human: fix the subject (several takes of one person).")
-@click.option("--noise", "noise_mm", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Gaussian noise (mm).")
-@click.option("--soft-tissue", "soft_tissue_mm", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Skin wobble rms (mm).")
-@click.option("--gaps", "gaps", type=click.FloatRange(min=0), default=0.0, show_default=True, help="Occlusion gaps per marker per minute.")
+@click.option("--noise", "noise_mm", type=float, callback=_finite(0.0, 1000.0), default=0.0, show_default=True, help="Gaussian noise (mm).")
+@click.option("--soft-tissue", "soft_tissue_mm", type=float, callback=_finite(0.0, 1000.0), default=0.0, show_default=True, help="Skin wobble rms (mm).")
+@click.option("--gaps", "gaps", type=float, callback=_finite(0.0, 10_000.0), default=0.0, show_default=True, help="Occlusion gaps per marker per minute.")
 @click.option("--jumps", type=click.IntRange(min=0), default=0, show_default=True, help="Sporadic jumps.")
 @click.option("--ghosts", type=click.IntRange(min=0), default=0, show_default=True, help="Ghost markers.")
 @click.option("--passive", is_flag=True, help="New label after every gap (passive system).")

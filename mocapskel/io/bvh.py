@@ -861,12 +861,22 @@ def read_bvh(path: str | os.PathLike) -> tuple[BvhSkeleton, np.ndarray, np.ndarr
         When the file cannot be read or is not a well-formed BVH file; the
         message names the file and the line.
     """
+    from .paths import require_regular_file
+
+    if os.path.exists(path):  # (a missing file: "cannot read" below)
+        require_regular_file(path, "a .bvh file")
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             text = f.read()
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror or e}", str(path)) from None
-    return parse_bvh(text, str(path))
+        raise InputError(f"cannot read ({e.strerror or e}) — check the file's permissions", str(path)) from None
+    try:
+        return parse_bvh(text, str(path))
+    except InputError as e:
+        msg = e.args[0]
+        if " — " in msg:
+            raise
+        raise InputError(f"{msg} — give a well-formed BVH file (export it again)", e.path) from None
 
 
 # --------------------------------------------------------------------------- kinematics
