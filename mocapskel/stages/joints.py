@@ -64,10 +64,10 @@ class Params:
     hinge_ratio: float = 0.4
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints..."""
-    hinge_plane: bool = False
+    hinge_plane: bool = True
     """Move a hinge's centre along its axis into the plane of its neighbours along the chain
-    (off: the centre stays on the axis nearest the two segments' markers, which measured
-    better on real takes — on real skin the neighbours' own errors carry over)."""
+    that SCoRE fixed in full (a knee between a hip and an ankle that the motion fixes);
+    with no such neighbour the centre stays on the axis nearest the two segments' markers."""
     hinge_min_sigma_mm: float = 0.1
     """...and only when SCoRE's standard error along the axis exceeds this (noise-free
     data fix even a near-hinge exactly)."""
@@ -179,7 +179,10 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             if params.method == "score":
                 per_joint[e]["note"] = f"SCoRE needs 3+ markers on both segments; {tree.method[e]} used"
     for e, (fit, R1) in (hinges.items() if params.hinge_plane else ()):
-        centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e)
+        # only neighbours that SCoRE fixed in full: a hinge is as loose along its own axis, and a
+        # joint of a one- or two-marker segment is held only by the distance prior
+        loose = {k for k in range(E) if k in hinges or methods[k] != "score"}
+        centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e, skip=loose)
         if shift is not None:
             per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
     if params.method == "sphere":
@@ -245,7 +248,8 @@ def _why(method: str, category: tuple[str, ...], edge: np.ndarray) -> str:
     }.get(method, cats)
 
 
-def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
+def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int,
+                   skip: set | frozenset = frozenset()) -> tuple[np.ndarray, float | None]:
     """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints along the chain.
 
     A hinge's centre is undetermined along its axis. Anatomically (a knee
@@ -253,7 +257,9 @@ def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, 
     where the axis meets the plane of the adjacent joint centres; those are
     fixed in one of the two segments, so their distance along the axis is
     constant. fit : a hinge ScoreFit; R1 : (F, 3, 3) rotations of the fit's
-    first segment; centres : (F, E, 3) all joint centres so far.
+    first segment; centres : (F, E, 3) all joint centres so far; ``skip``: joints
+    not to use (the other hinges: on real takes a walk makes hip, knee and ankle
+    all hinge-like, and each would carry the others' freedom along their axes).
     Returns (centre (F, 3), shift or None).
     """
     a, b = edges[e]
@@ -263,7 +269,7 @@ def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, 
     nb = []
     for s in (a, b):
         ks = [k for k in range(edges.shape[0]) if k != e and s in edges[k]]
-        if len(ks) == 1:
+        if len(ks) == 1 and ks[0] not in skip:  # a hinge neighbour is as loose along its own axis
             nb.extend(ks)
     base = centres[:, e].copy()
     if not nb:

@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 5
+VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -39,9 +39,15 @@ class Params:
     refine_iterations: int = 60
     joint_prior: float = 0.01
     """Weight (per frame) of the prior that holds each joint where the joints stage put it
-    relative to the markers of its two segments, in the refinement: negligible where the
-    markers fix the joint, decisive along directions they do not (see
-    :func:`~mocapskel.solvers.calibrate.refine_skeleton`)."""
+    relative to the markers of its two segments (see
+    :func:`~mocapskel.solvers.calibrate.refine_skeleton`), used when the refinement without
+    it leaves a joint implausibly far from its segments' markers (it slid along a direction
+    the markers do not fix). Without need it stays off: on a skeleton of two-marker segments
+    the joints stage's centres are rough, and only the whole skeleton's rigidity, unheld,
+    puts them right."""
+    far: float = 0.5
+    """A joint is implausible when it sits farther than this fraction of the subject's marker
+    extent from the nearest marker of one of its two segments."""
     hold_hinges: bool = True
     """Joints the joints stage placed as hinges keep their position along the hinge axis
     in the refinement (the markers hardly fix it; the joints stage put it in the plane
@@ -128,7 +134,11 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             if "refined" in one.info:
                 a = one.info["refined"]["marker_rms_mm_after"]
                 b = two.info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                win = two if b is not None and b < a else one
+                bad_one, bad_two = bool(far_joints(one, params.far)), two is None or bool(far_joints(two, params.far))
+                if bad_one != bad_two:  # never a lower residual bought with a joint off its markers
+                    win = two if bad_one else one
+                else:
+                    win = two if b is not None and b < a else one
                 info = dict(win.info)
                 info["refined"] = dict(info["refined"], start="framework" if win is two else "joints",
                                        marker_rms_mm_starts={"joints": a, "framework": b})
@@ -214,7 +224,44 @@ def refine_frame_count(frames: int, n_segments: int) -> int:
     return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
 
 
+def far_joints(skel: Skeleton, far: float) -> list[int]:
+    """Segments whose joint to their parent sits implausibly far from its markers, in the rest pose.
+
+    Far: farther than ``far`` times the subject's marker extent (the largest distance between two
+    markers at rest) from the nearest marker of the parent or of the child segment.
+    """
+    seg = skel.marker_segment
+    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
+    pos = np.full(skel.marker_local.shape, np.nan)
+    pos[ok] = skel.origin[seg[ok]] + skel.marker_local[ok]
+    P = pos[ok]
+    if len(P) < 2:
+        return []
+    ext = float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max())
+    out = []
+    for c in np.flatnonzero(skel.parent >= 0):
+        for s_ in (int(skel.parent[c]), int(c)):
+            m = pos[ok & (seg == s_)]
+            if len(m) and float(np.linalg.norm(m - skel.origin[c], axis=1).min()) > far * ext:
+                out.append(int(c))
+                break
+    return out
+
+
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
+    """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far."""
+    out = refine_once(skel, params, centres, 0.0)
+    bad = far_joints(out, params.far) if "refined" in out.info else []
+    if bad and params.joint_prior > 0:
+        held = refine_once(skel, params, centres, params.joint_prior)
+        info = dict(held.info)
+        info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
+                               held_because=[skel.names[c] for c in bad])
+        out = replace(held, info=info)
+    return out
+
+
+def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
     See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
@@ -234,7 +281,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
-                          hold_along=hold, joint_prior=params.joint_prior)
+                          hold_along=hold, joint_prior=prior)
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],
