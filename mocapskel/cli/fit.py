@@ -10,22 +10,60 @@ from .. import pipeline
 from ..io.atomic import AtomicOutputs, atomic_open
 from ..io.bvh import write_bvh
 from .main import cli, say_warnings
-from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
+from .options import (
+    bvh_options,
+    cache_options,
+    check_output,
+    common,
+    fit_options,
+    make_cache,
+    make_read,
+    naming_options,
+    read_options,
+)
 
 log = logging.getLogger("mocapskel")
 
 
-def write_markers_out(path, motion, input_path, read) -> None:
-    """The take's markers (as read) plus one virtual marker per joint centre, as C3D or TRC."""
-    from ..io.markers import write_markers
-    from ..kinematics import with_joint_markers
+def write_markers_out(path, motion, input_path, read, bvh=None) -> None:
+    """The take plus one virtual marker per joint centre, as C3D or TRC.
 
+    From a C3D take to a C3D file: the input file itself with the joint points
+    added (analogs, force plates, events, parameters kept). Otherwise the
+    take's markers as read plus the joint points.
+    """
+    from ..io.markers import write_markers
+    from ..kinematics import joint_points, with_joint_markers
+
+    naming = bvh.naming if bvh is not None else None
+    if str(path).lower().endswith(".c3d") and str(input_path).lower().endswith(".c3d"):
+        from ..io.c3d_points import add_points, c3d_frames
+
+        if c3d_frames(input_path) == motion.root_pos.shape[0]:
+            labels, desc, pts = joint_points(motion, naming)
+            add_points(input_path, path, labels, desc, pts)
+            return
+        log.warning("warning: %s: ezc3d reads a different frame count than the fit used; "
+                    "--markers-out holds the markers and joint points only", input_path)
     markers, _ = pipeline.read_input(input_path, read)
     markers = pipeline.artifacts.markers_of(markers)
     if markers.n_frames != motion.root_pos.shape[0]:  # pragma: no cover - same take
         raise ValueError("markers and motion differ in frame count")
     # keep only the labels the fit used, so that gaps and cleaning are as solved
-    write_markers(path, with_joint_markers(markers, motion))
+    write_markers(path, with_joint_markers(markers, motion, naming))
+
+
+def write_outputs(out, output, gltf_path, b) -> None:
+    """The motion as BVH (or glTF, by the output's extension), and as glTF too when asked."""
+    for path in (output, gltf_path):
+        if not path:
+            continue
+        if str(path).lower().endswith((".glb", ".gltf")):
+            from ..io.gltf import write_gltf
+
+            write_gltf(out.stage(path), b.skeleton, b.root_pos, b.local_rot, b.frame_time, up=b.up, units=b.units)
+        else:
+            write_bvh(out.stage(path), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
 
 
 def write_report(path, report: dict) -> None:
@@ -39,6 +77,8 @@ def write_report(path, report: dict) -> None:
 @click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
 @fit_options
 @bvh_options
+@naming_options
+@click.option("--gltf", "gltf_path", type=click.Path(), default=None, help="Also write the skeleton and its motion as glTF 2.0 (.glb or .gltf).")
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write the JSON report here.")
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
@@ -46,7 +86,7 @@ def write_report(path, report: dict) -> None:
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, html_path, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, html_path, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -54,7 +94,9 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         mocapskel fit take.c3d -o take.bvh
         mocapskel fit take.trc -o take.bvh --up z --units mm --report take.json
     """
-    check_output(output, input, suffixes=(".bvh",))
+    check_output(output, input, suffixes=(".bvh", ".glb", ".gltf"))
+    if gltf_path:
+        check_output(gltf_path, input, suffixes=(".glb", ".gltf"))
     if report_path:
         check_output(report_path, input, suffixes=(".json",))
     if skeleton_out:
@@ -67,11 +109,12 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
 
         check_output(html_path, input, suffixes=HTML_SUFFIXES)
         require_matplotlib()
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+                                  names=names, rest=rest)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     b = res.bvh
     with AtomicOutputs() as out:  # every output appears at the end, or none does
-        write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+        write_outputs(out, output, gltf_path, b)
         if report_path:
             write_report(out.stage(report_path), res.report)
         if skeleton_out:
@@ -79,7 +122,7 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
 
             write_skeleton(out.stage(skeleton_out), res.motion.skeleton, source=res.report["input"]["file"])
         if markers_out:
-            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
+            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include), b)
         if html_path:
             from .report import write_html_report
 

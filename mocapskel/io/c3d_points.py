@@ -24,6 +24,8 @@ __all__ = ["add_points", "c3d_frames"]
 
 #: Labels per ``POINT:LABELS``/``LABELS2`` ... parameter (C3D: at most 255 entries each).
 _PER_PARAM = 255
+#: Longest description written (a C3D string parameter's dimensions are single bytes).
+_MAX_TEXT = 250
 
 
 def c3d_frames(path: str | os.PathLike) -> int:
@@ -57,7 +59,9 @@ def _append_strings(group: dict, base: str, values: list[str], n_before: int, de
         if k in group:
             group[k]["value"] = chunk
         else:
-            group[k] = {"type": -1, "value": chunk, "description": description, "is_locked": False}
+            import ezc3d
+
+            group[k] = {"type": ezc3d.CHAR, "value": chunk, "description": description, "is_locked": False}
 
 
 def add_points(
@@ -135,7 +139,7 @@ def add_points(
         masks = np.zeros((7, P, F), dtype=bool)
     meta["camera_masks"] = np.concatenate([masks, np.zeros((7, K, F), dtype=bool)], axis=1)
     _append_strings(point, "LABELS", out_labels, P, "Point labels")
-    _append_strings(point, "DESCRIPTIONS", [str(d) for d in descriptions], P, "Point descriptions")
+    _append_strings(point, "DESCRIPTIONS", [str(d)[:_MAX_TEXT] for d in descriptions], P, "Point descriptions")
     with atomic_path(dst) as tmp:
         tmp_c3d = tmp + ".c3d"  # ezc3d's Python writer appends .c3d to any other name
         try:
