@@ -6,7 +6,8 @@ platforms, events, every parameter group (TRIAL, SUBJECTS, MANUFACTURER ...),
 the labels as written (``Subject:`` namespaces included), the points already
 there and their residuals and camera masks are carried over unchanged. Only
 what must change does: ``POINT:USED``, ``POINT:LABELS``/``DESCRIPTIONS`` (the
-new points appended) and ``POINT:DATA_START`` (the data block moves).
+new points appended) and ``POINT:DATA_START`` (and ``ROTATION:DATA_START`` where
+there is one: the data blocks move).
 """
 from __future__ import annotations
 
@@ -59,9 +60,9 @@ def _append_strings(group: dict, base: str, values: list[str], n_before: int, de
         if k in group:
             group[k]["value"] = chunk
         else:
-            import ezc3d
+            from ezc3d import ezc3d as _swig
 
-            group[k] = {"type": ezc3d.CHAR, "value": chunk, "description": description, "is_locked": False}
+            group[k] = {"type": _swig.CHAR, "value": chunk, "description": description, "is_locked": False}
 
 
 def add_points(
