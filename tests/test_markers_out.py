@@ -124,16 +124,29 @@ def _generated_c3d(path: Path, markers, namespace: str = "Subj") -> None:
     c.write(str(path))
 
 
-def test_markers_out_keeps_a_generated_lab_file_and_adds_humanoid_joint_points(tmp_path: Path) -> None:
-    import ezc3d
-
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """A generated human take in a C3D with what a lab file holds, fitted once."""
+    from mocapskel import pipeline
     from mocapskel.synth.presets import Recipe, make
 
+    d = tmp_path_factory.mktemp("lab")
     take = make(Recipe(kind="human", frames=300, rate=100.0, noise_mm=1.0, soft_tissue_mm=1.0, seed=5))
-    src = tmp_path / "lab.c3d"
+    src = d / "lab.c3d"
     _generated_c3d(src, take.markers)
+    res = pipeline.fit(src, pipeline.make_params())
+    return take, src, res
+
+
+def test_markers_out_keeps_a_generated_lab_file_and_adds_humanoid_joint_points(lab, tmp_path: Path) -> None:
+    import ezc3d
+
+    from mocapskel.cli.fit import write_markers_out
+    from mocapskel.pipeline import ReadOptions
+
+    take, src, res = lab
     out = tmp_path / "lab_jc.c3d"
-    _run("fit", str(src), "-o", str(tmp_path / "lab.bvh"), "--markers-out", str(out), "--no-cache", "-q")
+    write_markers_out(out, res.motion, src, ReadOptions(), res.bvh)
     added = _check_take_kept(src, out)
     b = ezc3d.c3d(str(out))
     ev = b["parameters"]["EVENT"]
@@ -153,27 +166,26 @@ def test_markers_out_keeps_a_generated_lab_file_and_adds_humanoid_joint_points(t
     assert np.median(np.linalg.norm(lk - rk, axis=1)) > 100.0  # and not the right one
 
 
-def test_markers_out_trc_reads_in_opensim(tmp_path: Path) -> None:
+def test_markers_out_trc_reads_in_opensim(lab, tmp_path: Path) -> None:
     osim = pytest.importorskip("opensim", reason="the opensim package is not installed: cannot check the TRC in OpenSim")
-    from mocapskel.synth.presets import Recipe, make
-    from mocapskel.io.markers import write_markers
+    from mocapskel.cli.fit import write_markers_out
+    from mocapskel.pipeline import ReadOptions
 
-    take = make(Recipe(kind="human", frames=240, rate=120.0, noise_mm=1.0, soft_tissue_mm=1.0, seed=2))
-    src = tmp_path / "t.c3d"
-    write_markers(src, take.markers)
+    take, src, res = lab
     out = tmp_path / "t_jc.trc"
-    _run("fit", str(src), "-o", str(tmp_path / "t.bvh"), "--markers-out", str(out), "--no-cache", "-q")
+    write_markers_out(out, res.motion, src, ReadOptions(), res.bvh)
     table = osim.TimeSeriesTableVec3(str(out))
     labels = list(table.getColumnLabels())
-    assert labels[: len(take.markers.labels)] == list(take.markers.labels)
+    assert labels[: len(take.markers.labels)] == list(take.markers.labels)  # the namespace removed
     assert "LeftKnee_JC" in labels
-    assert table.getNumRows() == 240
+    F = take.markers.n_frames
+    assert table.getNumRows() == F
     assert table.getTableMetaDataAsString("Units") == "mm"
-    assert float(table.getTableMetaDataAsString("DataRate")) == pytest.approx(120.0)
+    assert float(table.getTableMetaDataAsString("DataRate")) == pytest.approx(100.0)
     times = np.array(table.getIndependentColumn())
-    assert np.allclose(times, np.arange(240) / 120.0, atol=1e-6)
+    assert np.allclose(times, np.arange(F) / 100.0, atol=1e-6)
     col = table.getDependentColumn("LTHI1")
-    got = np.array([[col[i][k] for k in range(3)] for i in range(240)])
+    got = np.array([[col[i][k] for k in range(3)] for i in range(F)])
     want = take.markers.points[:, list(take.markers.labels).index("LTHI1")]
     ok = np.isfinite(want).all(axis=1)
     assert np.allclose(got[ok], want[ok], atol=1e-5)

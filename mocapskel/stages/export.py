@@ -142,8 +142,9 @@ def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, 
     End Site) is turned onto its standard direction by the smallest rotation:
     the trunk, neck and head up, the legs down, the feet and toes forward, the
     arms sideways (A-pose: 45 degrees down, the clavicles sideways). The pelvis
-    is turned so that its bone points up and the line between the hips along
-    lab +X (the subject's left), so that it faces lab -Y (BVH +Z with
+    is turned so that the line between the hips lies along lab +X (the
+    subject's left) and its bone (to the spine) points up as far as it is
+    perpendicular to that line, so that the subject faces lab -Y (BVH +Z with
     ``--up y``, the usual facing of a BVH character; Blender's front view
     with ``--up z``); the
     segment that carries the arms likewise with the line between the shoulders.
@@ -171,7 +172,7 @@ def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, 
         if n == "Hips":
             spine = [k for k in kids[s] if k not in naming.hips_children]
             d_up = (r[spine].mean(axis=0) if spine else r[s] + up) - r[s]
-            Q[s] = _frame_of(up, left) @ _frame_of(d_up, hl - hr).T
+            Q[s] = _frame_of(left, up) @ _frame_of(hl - hr, d_up).T
             continue
         arms = [k for k in kids[s] if names[k].endswith(("Shoulder", "Arm")) and not names[k].endswith("ForeArm")]
         if side == 0.0 and len(arms) == 2 and np.linalg.norm(d) > 1e-9:
