@@ -38,11 +38,14 @@ def motion():
     return fit_motion(take.markers).motion
 
 
-@pytest.mark.parametrize(("up", "units"), list(FRAMES))
-def test_blender_puts_every_bone_where_our_forward_kinematics_does(motion, up, units, tmp_path):
+CASES = [(up, units, "frame") for up, units in FRAMES] + [("y", "cm", "tpose"), ("z", "mm", "apose")]
+
+
+@pytest.mark.parametrize(("up", "units", "rest"), CASES)
+def test_blender_puts_every_bone_where_our_forward_kinematics_does(motion, up, units, rest, tmp_path):
     F = motion.rot.shape[0]
     frames = pick_frames(F, None)  # every frame
-    r = check_frame(motion, up, units, tmp_path, frames, blender=BLENDER, timeout=TIMEOUT_S)
+    r = check_frame(motion, up, units, tmp_path, frames, blender=BLENDER, timeout=TIMEOUT_S, rest=rest)
     assert r.bones_compared == len(motion.skeleton.names)
     assert r.frames_compared == F
     assert r.max_mm <= TOLERANCE_MM, r.problems

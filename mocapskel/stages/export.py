@@ -255,3 +255,30 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     return BvhMotion(bskel, lab_to_bvh(root_world, params.up, params.units), local, 1.0 / rate,
                      segment=perm, naming=naming, rest=rest, notes=tuple(notes),
                      up=params.up, units=params.units)
+
+
+def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
+    """(F, S, 3) where each BVH joint of ``bvh`` should be (lab, mm), from ``motion`` alone.
+
+    A joint is the fitted tree's joint between its segment and its parent's
+    (:func:`mocapskel.kinematics.segment_origins` of the child of that edge);
+    a humanoid root is the midpoint of the two hip joints. Independent of the
+    BVH's offsets and rotations: what a reader of the file should find.
+    """
+    from ..kinematics import segment_origins
+
+    O = segment_origins(motion)
+    old = np.asarray(motion.skeleton.parent)
+    seg = bvh.segment
+    out = np.empty((O.shape[0], len(seg), 3))
+    for i, s in enumerate(seg.tolist()):
+        p = int(bvh.skeleton.parent[i])
+        if p >= 0:
+            q = int(seg[p])
+            out[:, i] = O[:, s] if old[s] == q else O[:, q]
+        elif bvh.naming is not None and bvh.naming.hips_children:
+            hips = [O[:, c] if old[c] == s else O[:, s] for c in bvh.naming.hips_children]
+            out[:, i] = 0.5 * (hips[0] + hips[1])
+        else:
+            out[:, i] = O[:, s]
+    return out
