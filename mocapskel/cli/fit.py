@@ -37,14 +37,14 @@ def write_markers_out(path, motion, input_path, read, bvh=None) -> None:
 
     naming = bvh.naming if bvh is not None else None
     if str(path).lower().endswith(".c3d") and str(input_path).lower().endswith(".c3d"):
-        from ..io.c3d_points import add_points, c3d_frames
+        from ..io.c3d_points import FrameCountMismatch, add_points
 
-        if c3d_frames(input_path) == motion.root_pos.shape[0]:
-            labels, desc, pts = joint_points(motion, naming)
+        labels, desc, pts = joint_points(motion, naming)
+        try:
             add_points(input_path, path, labels, desc, pts)
             return
-        log.warning("warning: %s: ezc3d reads a different frame count than the fit used; "
-                    "--markers-out holds the markers and joint points only", input_path)
+        except FrameCountMismatch as e:  # a take longer than ezc3d reads (65535 frames)
+            log.warning("warning: %s; --markers-out holds the markers and joint points only", e)
     markers, _ = pipeline.read_input(input_path, read)
     markers = pipeline.artifacts.markers_of(markers)
     if markers.n_frames != motion.root_pos.shape[0]:  # pragma: no cover - same take

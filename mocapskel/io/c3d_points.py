@@ -21,7 +21,7 @@ from ..errors import InputError
 from .atomic import atomic_path
 from .markers import unit_factor
 
-__all__ = ["add_points", "c3d_frames"]
+__all__ = ["FrameCountMismatch", "add_points"]
 
 #: Labels per ``POINT:LABELS``/``LABELS2`` ... parameter (C3D: at most 255 entries each).
 _PER_PARAM = 255
@@ -29,11 +29,8 @@ _PER_PARAM = 255
 _MAX_TEXT = 250
 
 
-def c3d_frames(path: str | os.PathLike) -> int:
-    """The number of point frames ezc3d reads from ``path``."""
-    import ezc3d
-
-    return int(ezc3d.c3d(str(path))["data"]["points"].shape[2])
+class FrameCountMismatch(InputError):
+    """ezc3d reads another number of frames than the points to add have."""
 
 
 def _series(group: dict, base: str) -> list[str]:
@@ -95,7 +92,8 @@ def add_points(
     Raises
     ------
     InputError
-        When ezc3d cannot read ``src`` or its frame count is not ``F``.
+        When ezc3d cannot read ``src``; FrameCountMismatch (an InputError)
+        when it reads another frame count than ``F``.
     """
     import ezc3d
 
@@ -106,8 +104,10 @@ def add_points(
     pts = np.asarray(points_mm, dtype=np.float64)
     data = c["data"]["points"]
     F, P = data.shape[2], data.shape[1]
-    if pts.ndim != 3 or pts.shape[0] != F or pts.shape[2] != 3 or pts.shape[1] != len(labels) or len(descriptions) != len(labels):
-        raise InputError(f"holds {F} frames, the joint points {pts.shape[0]}: cannot add them to it", str(src))
+    if pts.ndim != 3 or pts.shape[2] != 3 or pts.shape[1] != len(labels) or len(descriptions) != len(labels):
+        raise ValueError(f"points_mm {pts.shape} does not match {len(labels)} labels and {len(descriptions)} descriptions")
+    if pts.shape[0] != F:
+        raise FrameCountMismatch(f"ezc3d reads {F} frames, the joint points have {pts.shape[0]}", str(src))
     K = pts.shape[1]
     point = c["parameters"]["POINT"]
     old_labels: list[str] = []
