@@ -121,8 +121,26 @@ def _chains(nb: list[list[int]]) -> tuple[list[list[int]], list[int]] | str:
     return chains, attach
 
 
-def _chain_length(skel, chain: list[int]) -> float:
-    return float(np.sum(np.asarray(skel.bone_length)[chain]))
+def _rest_joint(skel, a: int, b: int) -> np.ndarray:
+    """Rest position of the joint between adjacent segments a and b (whichever way the tree points)."""
+    return skel.origin[b] if skel.parent[b] == a else skel.origin[a]
+
+
+def _segment_lengths(skel, chain: list[int], attach: int) -> list[float]:
+    """Each chain segment's length at rest: joint to next joint, the last to its End Site.
+
+    Independent of where the fitted tree is rooted (unlike ``bone_length``).
+    """
+    out = []
+    prev = attach
+    for k, s in enumerate(chain):
+        start = _rest_joint(skel, prev, s)
+        if k + 1 < len(chain):
+            out.append(float(np.linalg.norm(_rest_joint(skel, s, chain[k + 1]) - start)))
+        else:
+            out.append(float(np.linalg.norm(skel.end_site[s])))
+        prev = s
+    return out
 
 
 def _label_side(labels: list[str]) -> str | None:
@@ -199,7 +217,8 @@ def recognise(skel, motion=None) -> Naming | str:
     order = [ends[0]]
     while len(order) < len(trunk):
         order.append(next(n for n in tnb[order[-1]] if n not in order))
-    length = [_chain_length(skel, c) for c in chains]
+    seg_len = [_segment_lengths(skel, c, a) for c, a in zip(chains, attach)]
+    length = [float(sum(x)) for x in seg_len]
     ids = list(range(5))
     if len(trunk) == 1:
         head = min(ids, key=lambda i: length[i])
@@ -255,10 +274,9 @@ def recognise(skel, motion=None) -> Naming | str:
     for ci, side_name in ((left_leg, "Left"), (right_leg, "Right")):
         for s, n in zip(chains[ci], leg_parts):
             names[s] = side_name + n
-    bl = np.asarray(skel.bone_length)
     for ci, side_name in ((left_arm, "Left"), (right_arm, "Right")):
         c = chains[ci]
-        if len(c) == 4 or (len(c) == 3 and bl[c[0]] < 0.7 * bl[c[1]]):
+        if len(c) == 4 or (len(c) == 3 and seg_len[ci][0] < 0.7 * seg_len[ci][1]):
             parts = ["Shoulder", "Arm", "ForeArm", "Hand"]
         else:
             parts = ["Arm", "ForeArm", "Hand"]

@@ -149,3 +149,34 @@ def test_tpose_has_limbs_along_the_axes_and_a_visible_hips_bone(fitted) -> None:
         assert np.linalg.norm(off["Spine"]) > 50.0  # the bone from the pelvis to the spine is visible
         hips = off["LeftUpLeg"] - off["RightUpLeg"]
         assert np.allclose(hips / np.linalg.norm(hips), [1, 0, 0], atol=1e-9)  # facing -Y, left +X
+
+
+def _rerooted(motion, new_root: int):
+    """The same fitted motion with its tree rooted at ``new_root`` (a child's origin is its joint with the parent)."""
+    from mocapskel.kinematics import segment_origins
+
+    sk = motion.skeleton
+    parent = export.tree_from(np.asarray(sk.parent), new_root)
+    origin = sk.origin.copy()
+    O = segment_origins(motion)
+    for s, q in enumerate(parent.tolist()):
+        if q >= 0 and sk.parent[s] != q:  # a reversed edge: the joint is the old child's origin
+            origin[s] = sk.origin[q]
+    leaf_before = np.ones(len(parent), bool)
+    leaf_before[sk.parent[sk.parent >= 0]] = False
+    end = np.where(leaf_before[:, None], sk.end_site, 0.0)
+    new_sk = replace(sk, parent=parent, origin=origin, end_site=end)
+    root_pos = O[:, new_root] + np.einsum("fij,j->fi", motion.rot[:, new_root], origin[new_root] - sk.origin[new_root])
+    return replace(motion, skeleton=new_sk, root_pos=root_pos)
+
+
+def test_a_fitted_root_in_a_limb_gives_the_same_humanoid_bvh(fitted) -> None:
+    _, res = fitted
+    m = res.motion
+    b0 = export.run(m, export.Params(rest="tpose"))
+    thigh = int(b0.segment[list(b0.skeleton.names).index("LeftUpLeg")])
+    b1 = export.run(_rerooted(m, thigh), export.Params(rest="tpose"))
+    assert b1.skeleton.names == b0.skeleton.names and b1.skeleton.names[0] == "Hips"
+    assert np.allclose(b1.skeleton.offset, b0.skeleton.offset, atol=1e-9)
+    assert np.allclose(b1.root_pos, b0.root_pos, atol=1e-9)
+    assert np.allclose(b1.local_rot, b0.local_rot, atol=1e-9)
