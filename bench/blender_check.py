@@ -139,6 +139,8 @@ out = {
     "bones": [b.name for b in arm.pose.bones],
     "leaves": [b.name for b in arm.pose.bones if not b.children],
     "frames": args["frames"],
+    "rest": {b.name: [list(arm.matrix_world @ b.head_local), list(arm.matrix_world @ b.tail_local)]
+             for b in arm.data.bones},
     "heads": [],
     "tails": [],
 }
@@ -175,6 +177,7 @@ class Result:
     seconds: float
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    rest_bones: dict = field(default_factory=dict)  # bone name -> (head, tail) at rest, Blender world in mm
 
     @property
     def ok(self) -> bool:
@@ -313,6 +316,7 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
         file_max_mm=float(file_err.max()),
         frames_in_file=F, frames_in_blender=n_keys, fps_expected=fps_expected, fps_in_blender=fps_got,
         blender=got["blender"], seconds=seconds, problems=problems, notes=notes,
+        rest_bones={k: np.asarray(v, dtype=np.float64) * scale for k, v in got["rest"].items()},
     )
 
 
