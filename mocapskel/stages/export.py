@@ -208,7 +208,9 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         notes.append(f"--names humanoid: {naming.note}; generic names kept")
     rest = params.rest
     if rest != "frame" and not naming.humanoid:
-        notes.append(f"--rest {rest} needs a skeleton recognised as a person; the rest pose is the rest frame's")
+        why = ("the humanoid names (not --names segments)" if params.names == "segments"
+               else "a skeleton recognised as a person")
+        notes.append(f"--rest {rest} needs {why}; the rest pose is the rest frame's")
         rest = "frame"
     old_parent = np.asarray(sk.parent)
     parent = tree_from(old_parent, naming.root) if naming.root != int(np.flatnonzero(old_parent < 0)[0]) else old_parent
