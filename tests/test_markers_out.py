@@ -189,3 +189,48 @@ def test_markers_out_trc_reads_in_opensim(lab, tmp_path: Path) -> None:
     want = take.markers.points[:, list(take.markers.labels).index("LTHI1")]
     ok = np.isfinite(want).all(axis=1)
     assert np.allclose(got[ok], want[ok], atol=1e-5)
+
+
+def test_added_points_continue_labels2_beyond_255_points(tmp_path: Path) -> None:
+    from mocapskel.artifacts import Markers
+    from mocapskel.io.c3d import write_c3d
+    from mocapskel.io.c3d_points import add_points
+    from mocapskel.io.markers import read_markers
+
+    rng = np.random.default_rng(0)
+    F, M = 20, 260
+    pts = rng.normal(size=(F, M, 3)) * 100
+    write_c3d(tmp_path / "many.c3d", Markers(points=pts, labels=tuple(f"P{i}" for i in range(M)), rate=100.0))
+    new = rng.normal(size=(F, 3, 3)) * 100
+    new[3, 1] = np.nan
+    got = add_points(tmp_path / "many.c3d", tmp_path / "jc.c3d", ["A_JC", "P7", "C_JC"], ["a", "b", "c"], new)
+    assert got == ["A_JC", "P7_2", "C_JC"]  # a label already in the file gets a suffix
+    back = read_markers(tmp_path / "jc.c3d", include=("*",))
+    assert back.labels[-4:] == ("P259", "A_JC", "P7_2", "C_JC") and back.n_markers == M + 3
+    np.testing.assert_allclose(back.points[:, -3:], new, atol=1e-3)  # float32 storage; the NaN a gap
+    np.testing.assert_array_equal(back.points[:, :M], np.asarray(pts, dtype=np.float32).astype(np.float64))
+
+
+def test_added_points_are_written_in_the_files_units(tmp_path: Path) -> None:
+    import ezc3d
+
+    from mocapskel.io.c3d_points import add_points
+    from mocapskel.io.markers import read_markers
+
+    rng = np.random.default_rng(1)
+    F, M = 30, 4
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [50.0]
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["m"]
+    c["parameters"]["POINT"]["LABELS"]["value"] = ["A", "B", "C", "D"]
+    data = np.ones((4, M, F))
+    data[:3] = rng.normal(size=(3, M, F))
+    c["data"]["points"] = data
+    c.write(str(tmp_path / "m.c3d"))
+    jc_mm = rng.normal(size=(F, 2, 3)) * 1000
+    add_points(tmp_path / "m.c3d", tmp_path / "m_jc.c3d", ["X_JC", "Y_JC"], ["x", "y"], jc_mm)
+    back = read_markers(tmp_path / "m_jc.c3d", include=("*",))  # mm, from the file's metres
+    assert back.units == "m"
+    np.testing.assert_allclose(back.points[:, -2:], jc_mm, rtol=1e-6, atol=1e-3)
+    b = ezc3d.c3d(str(tmp_path / "m_jc.c3d"))
+    np.testing.assert_allclose(b["data"]["points"][:3, M:].T, jc_mm.transpose(0, 1, 2) / 1000, atol=1e-6)
