@@ -181,6 +181,8 @@ def make_params(
     rest_frame: int | None = None,
     up: str = "y",
     units: str = "cm",
+    names: str = "auto",
+    rest: str = "frame",
 ) -> dict[str, Any]:
     """Stage parameters from the command line's options."""
     from .stages import export, joints, rigid, segment
@@ -189,7 +191,7 @@ def make_params(
         "segment": segment.Params(n_segments=segments),
         "joints": joints.Params(method=joint_method),
         "rigid": rigid.Params(rest_frame=rest_frame),
-        "export": export.Params(up=up, units=units),
+        "export": export.Params(up=up, units=units, names=names, rest=rest),
     }
 
 
@@ -263,6 +265,8 @@ def fit(
     run.seconds["export"] = time.perf_counter() - t_exp
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
+    report["export"] = bvh.report()
+    report["warnings"].extend(bvh.notes)
     return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
 
 
@@ -375,7 +379,8 @@ def solve(
             "marker_rms_mm_per_segment": motion.info.get("rms_mm_per_segment", {}),
             "filled_fraction": motion.info.get("filled_fraction"),
         },
+        "export": bvh.report(),
         "seconds": {k: round(v, 4) for k, v in seconds.items()},
-        "warnings": warnings,
+        "warnings": warnings + list(bvh.notes),
     }
     return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings))
