@@ -557,8 +557,8 @@ def _locomotion(kind: str, rng: np.random.Generator, t: np.ndarray, subj: _Subje
 
 def _standing_root(rng: np.random.Generator, t: np.ndarray, subj: _Subject):
     F = t.size
-    yaw = rng.uniform(0.0, 2.0 * np.pi) + np.deg2rad(5.0) * _smooth(rng, t, 1, 0.05, 0.2)[:, 0] / 2.0
-    xy = rng.uniform(-500.0, 500.0, 2) + 15.0 * _smooth(rng, t, 2, 0.05, 0.3) / 2.0
+    yaw = rng.uniform(0.0, 2.0 * np.pi) + np.deg2rad(2.0) * _smooth(rng, t, 1, 0.05, 0.2)[:, 0] / 2.0
+    xy = rng.uniform(-500.0, 500.0, 2) + 10.0 * _smooth(rng, t, 2, 0.05, 0.3) / 2.0
     root_pos = np.column_stack([xy, np.full(F, subj.pelvis_height)])
     return root_pos, yaw
 
@@ -569,6 +569,7 @@ def _reach(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.nd
     # channels: per arm shoulder (x, y, z), elbow flex, wrist (x, y, z); lumbar (x, y, z); neck (x, y, z); hips flex
     rest = {"sh": [8.0, 0.0, 0.0], "el": 15.0, "wr": [0.0, 0.0, 0.0]}
     times, keys = [0.0], []
+    el_times, el_keys = [0.0], [[rest["el"], rest["el"]]]  # elbows: they flex on the way out and back
 
     def pose(reach_l, reach_r, trunk, neck):
         row = []
@@ -593,18 +594,25 @@ def _reach(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.nd
         d_out, hold, d_back, pause = rng.uniform(0.7, 1.1), rng.uniform(0.2, 0.5), rng.uniform(0.5, 0.8), rng.uniform(0.2, 0.6)
         times += [tk, tk + d_out, tk + d_out + hold, tk + d_out + hold + d_back]
         keys += [base, target, target, base]
+        bent = rng.uniform(60.0, 100.0)
+        el_mid = [bent if "L" in which else rest["el"], bent if "R" in which else rest["el"]]
+        el_end = [r["el"] if "L" in which else rest["el"], r["el"] if "R" in which else rest["el"]]
+        el_times += [tk, tk + 0.45 * d_out, tk + d_out, tk + d_out + hold, tk + d_out + hold + 0.5 * d_back,
+                     tk + d_out + hold + d_back]
+        el_keys += [[rest["el"]] * 2, el_mid, el_end, el_end, el_mid, [rest["el"]] * 2]
         tk += d_out + hold + d_back + pause
     V = _minjerk_keys(t, np.array(times), np.array(keys))
+    V[:, [3, 10]] = _minjerk_keys(t, np.array(el_times), np.array(el_keys))
     rv = np.zeros((F, _S, 3))
     for i, side in enumerate("LR"):
         o = 7 * i
         _put_ball(rv, side + "Shoulder", V[:, o:o + 3])
         _put_hinge(rv, side + "Elbow", -V[:, o + 3], _smooth(rng, t, 2, 0.1, 0.5, k=3) * 0.2 * slack)
         _put_ball(rv, side + "Wrist", V[:, o + 4:o + 7])
-        _put_ball(rv, side + "Hip", np.column_stack([np.zeros(F), -5.0 - 0.5 * V[:, 15], np.zeros(F)])
-                  + _smooth(rng, t, 3, 0.05, 0.3, k=3))
-        _put_hinge(rv, side + "Knee", 6.0 + 2.0 * _smooth(rng, t, 1, 0.05, 0.3, k=3)[:, 0], np.zeros((F, 2)))
-        _put_ball(rv, side + "Ankle", np.column_stack([np.zeros(F), 0.3 * V[:, 15], np.zeros(F)]))
+        # the legs stand still (the trunk leans at the lumbar joint)
+        _put_ball(rv, side + "Hip", np.column_stack([np.full(F, 3.0), np.full(F, -5.0), np.zeros(F)])
+                  + 0.5 * _smooth(rng, t, 3, 0.05, 0.3, k=3))
+        _put_hinge(rv, side + "Knee", 6.0 + _smooth(rng, t, 1, 0.05, 0.3, k=3)[:, 0], np.zeros((F, 2)))
     _put_ball(rv, "Lumbar", V[:, 14:17])
     _put_ball(rv, "Neck", V[:, 17:20])
     root_pos, yaw = _standing_root(rng, t, subj)
