@@ -47,23 +47,27 @@ Skin motion (``skin="realistic"``)
 ----------------------------------
 Each marker moves on its bone by a smooth function of the angles of the
 joints at both ends of its segment (linear and quadratic terms of every degree
-of freedom, random coefficients per marker, so markers of one segment do not
-move together), mostly along the skin (the normal component is damped). The
-coefficients are scaled so that over the joints' full ranges the marker's
-peak-to-peak displacement is its amplitude, drawn per marker from the ranges
-of the literature (Leardini et al. 2005, Peters et al. 2010): thigh 10-30 mm
-(largest near the hip and over muscle), shank 5-15, upper arm 5-20, forearm
-4-12, bony landmarks and joint markers 3-8, pelvis 3-12, head band 2-5, feet
-and hands 2-6; wands 1.3 times their skin's. A plate moves as a whole
-(translation with that amplitude plus a rotation of up to ~4 degrees). On top, a
-small band-limited (2-8 Hz) wobble of rms 5 % of the amplitude. A take's actual
-skin motion is smaller when it uses a small part of the joints' ranges (walking).
-``truth.info["skin_p2p_mm"]`` holds each marker's amplitude.
+of freedom, each normalised to the joint's everyday range and saturating
+beyond it; random coefficients per marker, so markers of one segment do not
+move together), mostly along the skin (the normal component is damped by 60 %).
+A marker's amplitude (peak-to-peak) is twice the median distance of its
+displacement from the mean over poses drawn uniformly in the joints' everyday
+ranges; it is drawn per marker from the
+ranges of the literature (Leardini et al. 2005, Peters et al. 2010): thigh
+10-30 mm (largest near the hip), shank 5-15, upper arm 5-20, forearm 4-12,
+knee marker 5-15 (the skin folds over the knee), elbow marker 4-12, other
+bony landmarks 2-12 (malleoli 3-8, pelvis 3-12, heel and toes 3-10), head band
+2-5; wand markers 1.3 times their skin's. Walking moves a thigh marker by about
+its amplitude, a range-of-motion take by up to about three times it. A plate
+moves as a whole (a translation of that amplitude plus a rotation of a few
+degrees). On top, a small band-limited (2-8 Hz) wobble of rms 5 % of the
+amplitude. ``truth.info["skin_p2p_mm"]`` holds each marker's amplitude. The
+feet are rigid (no toe joint, no arch): real heel-to-toe distances vary more.
 
 Motions
 -------
 ``walk`` (straight line, ~1.3 m/s, hip ~40 deg flexion range, knee ~60),
-``run`` (~3.2 m/s, hip ~60, knee ~100; feet past 5 m/s), ``climb`` (stairs up,
+``run`` (~3 m/s, hip ~55 deg, knee ~90; feet past 5 m/s), ``climb`` (stairs up,
 170 mm rise, 280 mm going), ``reach`` (standing, arms reach to random targets,
 trunk leans), ``kick`` (fighting guard, front and roundhouse kicks; the foot
 reaches 6-10 m/s), ``rom`` (the range-of-motion take of :func:`human_take`).
@@ -78,7 +82,6 @@ import numpy as np
 from ..artifacts import Markers
 from .human import (
     _HINGE,
-    _ROM_BALL,
     HINGES,
     JOINT_NAMES,
     PARENT,
