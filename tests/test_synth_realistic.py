@@ -92,7 +92,7 @@ def test_truth_saves_and_loads(tmp_path):
 
 
 @pytest.mark.parametrize("label, joint, distal, motion", [
-    ("LKNE", "LKnee", "LAnkle", "walk"), ("RELB", "RElbow", "RWrist", "reach"), ("LELB", "LElbow", "LWrist", "kick"),
+    ("LKNE", "LKnee", "LAnkle", "walk"), ("RELB", "RElbow", "RWrist", "rom"), ("LELB", "LElbow", "LWrist", "rom"),
     ("LANK", "LAnkle", None, "walk"), ("RWRA", "RWrist", None, "walk")])
 def test_markers_on_a_joint_sit_on_its_axis_and_move_with_neither_segment(label, joint, distal, motion):
     clean = _take(motion, skin="none")
@@ -110,10 +110,16 @@ def test_markers_on_a_joint_sit_on_its_axis_and_move_with_neither_segment(label,
         to_distal = np.linalg.norm(clean.markers.points[:, m] - clean.truth.joints[:, J[distal]], axis=1)
         other = "LTHI" if label == "LKNE" else "RUPA"  # a marker of the same bone away from the joint
         far = np.linalg.norm(_col(clean, other) - clean.truth.joints[:, J[distal]], axis=1)
-        assert np.ptp(to_distal) < 8.0 and np.ptp(far) > 4.0 * np.ptp(to_distal)
+        assert np.ptp(far) > 4.0 * np.ptp(to_distal)
 
 
 # --------------------------------------------------------------------------- skin motion
+
+
+def _diameter(x: np.ndarray) -> float:
+    """Peak-to-peak size of a (F, 3) path: the largest distance between two of its points."""
+    x = x[::2]
+    return float(np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1).max()))
 
 
 def _host_joint(take, m):
@@ -121,6 +127,18 @@ def _host_joint(take, m):
     s = take.truth.marker_segment[m]
     child = s if take.truth.parent[s] >= 0 else int(np.flatnonzero(take.truth.parent == s)[0])
     return int(np.flatnonzero(take.truth.joint_child == child)[0])
+
+
+def test_the_acromion_rides_the_shoulder_girdle_with_the_shoulder_centre():
+    clean = _take("reach", skin="none")
+    moved = []
+    for side, joint in (("L", "LShoulder"), ("R", "RShoulder")):
+        gh = clean.truth.joints[:, J[joint]]
+        to_gh = np.linalg.norm(_col(clean, side + "SHO") - gh, axis=1)
+        assert np.ptp(to_gh) < 1e-6 and 30.0 < to_gh.mean() < 70.0
+        moved.append(np.ptp(np.linalg.norm(gh - clean.truth.joints[:, J["Lumbar"]], axis=1)))
+    assert max(moved) > 5.0  # the shoulder centre moves on the thorax as an arm rises (scapulohumeral rhythm)
+    assert np.ptp(np.linalg.norm(_col(clean, "C7") - clean.truth.joints[:, J["Lumbar"]], axis=1)) < 1e-6
 
 
 def test_rigid_markers_keep_their_distance_to_their_joints_up_to_the_skin_amplitude(walk):
@@ -134,26 +152,38 @@ def test_rigid_markers_keep_their_distance_to_their_joints_up_to_the_skin_amplit
         d_clean = np.linalg.norm(clean.markers.points[:, m] - clean.truth.joints[:, e], axis=1)
         d_skin = np.linalg.norm(skin.markers.points[:, m] - skin.truth.joints[:, e], axis=1)
         assert np.ptp(d_clean) < 1e-6, label
-        assert np.ptp(d_skin) <= 1.5 * amp[label] + 0.5, (label, np.ptp(d_skin), amp[label])
+        assert np.ptp(d_skin) <= 1.8 * amp[label], (label, np.ptp(d_skin), amp[label])
 
 
 def test_skin_amplitudes_follow_the_literature_and_the_markers_of_a_segment_move_apart(walk):
     skin, clean = walk
     amp = skin.truth.info["skin_p2p_mm"]
     ranges = {"LTHI": (10, 30), "RTHI": (10, 30), "LSHN": (5, 15), "LUPA": (5, 20), "RUPA": (5, 20),
-              "LKNE": (5, 15), "LANK": (3, 8), "LFHD": (2, 5), "RBHD": (2, 5), "LFWT": (4, 12)}
+              "LKNE": (5, 15), "LANK": (3, 8), "LFHD": (2, 5), "RBHD": (2, 5), "LFWT": (5, 15)}
     for label, (lo, hi) in ranges.items():
         assert lo <= amp[label] <= hi, label
     d = skin.markers.points - clean.markers.points
-    p2p = {l: 2 * np.linalg.norm(d[:, i] - d[:, i].mean(0), axis=1).max() for i, l in enumerate(skin.markers.labels)}
+    p2p = {l: _diameter(d[:, i]) for i, l in enumerate(skin.markers.labels)}
     # walking moves the thigh's skin by centimetres, the shank's by several mm, bony landmarks by a few
     assert 8.0 <= max(p2p["LTHI"], p2p["RTHI"]) <= 45.0
-    assert 3.0 <= max(p2p["LSHN"], p2p["RSHN"]) <= 25.0
+    assert 3.0 <= max(p2p["LSHN"], p2p["RSHN"]) <= 23.0
     assert max(p2p["LHEE"], p2p["LFHD"], p2p["CLAV"]) <= 15.0
     # markers of one segment do not move together: their relative motion is as large as their own
     for a, b in (("LTHI", "LKNE"), ("LFHD", "LBHD"), ("LFWT", "LBWT")):
         rel = d[:, skin.markers.labels.index(a)] - d[:, skin.markers.labels.index(b)]
-        assert 2 * np.linalg.norm(rel - rel.mean(0), axis=1).max() >= 0.4 * max(p2p[a], p2p[b]), (a, b)
+        assert _diameter(rel) >= 0.4 * max(p2p[a], p2p[b]), (a, b)
+
+
+@pytest.mark.parametrize("motion", ["kick", "rom"])
+def test_large_motions_stretch_the_skin_at_most_one_and_a_half_amplitudes(motion):
+    skin, clean = _take(motion, frames=480), _take(motion, skin="none", frames=480)
+    amp = skin.truth.info["skin_p2p_mm"]
+    d = skin.markers.points - clean.markers.points
+    for i, label in enumerate(skin.markers.labels):
+        if skin.truth.info["marker_kind"][label] == "acromion":
+            continue
+        # 1.5 amplitudes, plus the small band-limited wobble (rms 5 % of the amplitude)
+        assert _diameter(d[:, i]) <= 1.8 * amp[label], (label, _diameter(d[:, i]), amp[label])
 
 
 def test_cluster_plates_stay_rigid_and_slide_as_a_whole():

@@ -40,8 +40,11 @@ acromion to the thorax. Because it sits on the axis, its distance to the
 markers of the other neighbour stays nearly constant too: a grouping that puts
 it with that neighbour is as defensible, and ``truth.info["marker_segments_ok"]``
 lists both segments for it (``info["joint_markers"]`` names its joint). The
-acromion (LSHO) also follows the arm's elevation (the scapulohumeral rhythm,
-20 % of the elevation, about the sterno-clavicular joint).
+shoulder girdle moves with the arm (the scapulohumeral rhythm: about the
+sterno-clavicular joint it rises by 20 % of the arm's elevation and turns
+forward by 25 % of its forward flexion), carrying the acromion (LSHO) and the
+shoulder joint centre: the shoulder centre moves on the thorax by up to
+~50 mm in a take that lifts the arms (no clavicle segment in the truth).
 
 Skin motion (``skin="realistic"``)
 ----------------------------------
@@ -56,11 +59,14 @@ ranges; it is drawn per marker from the
 ranges of the literature (Leardini et al. 2005, Peters et al. 2010): thigh
 10-30 mm (largest near the hip), shank 5-15, upper arm 5-20, forearm 4-12,
 knee marker 5-15 (the skin folds over the knee), elbow marker 4-12, other
-bony landmarks 2-12 (malleoli 3-8, pelvis 3-12, heel and toes 3-10), head band
+bony landmarks 2-12 (malleoli 3-8, pelvis 3-12, heel and toes 3-10), waist belt
+4-15, head band
 2-5; wand markers 1.3 times their skin's. Walking moves a thigh marker by about
 its amplitude, a range-of-motion take by up to about three times it. A plate
 moves as a whole (a translation of that amplitude plus a rotation of a few
-degrees). On top, a small band-limited (2-8 Hz) wobble of rms 5 % of the
+degrees). However large the motion, a marker's displacement stays within
+0.75 times its amplitude of the mean (a smooth limit: skin stretches only so
+far), so its peak-to-peak never exceeds 1.5 times the amplitude. On top, a small band-limited (2-8 Hz) wobble of rms 5 % of the
 amplitude. ``truth.info["skin_p2p_mm"]`` holds each marker's amplitude. The
 feet are rigid (no toe joint, no arch): real heel-to-toe distances vary more.
 
@@ -116,14 +122,15 @@ _JNT = {n: i for i, n in enumerate(JOINT_NAMES)}  # joint e has child segment e 
 _WOBBLE = 0.05  # rms of the band-limited wobble, as a fraction of the amplitude
 _WOBBLE_BAND_HZ = (2.0, 8.0)
 _NORMAL_DAMP = 0.6  # skin motion along the skin normal is reduced by this fraction
-_ACROMION_RHYTHM = 0.2  # acromion turns about the SC joint by this fraction of the arm's elevation
+_ACROMION_RHYTHM = 0.2  # the clavicle rises about the SC joint by this fraction of the arm's elevation
+_PROTRACTION = 0.25  # and turns forward by this fraction of the arm's forward flexion
 _WAND_MM = 60.0
 _WAND_GAIN = 1.3
 
 # ------------------------------------------------------------------ marker tables
 # (label, host segment, anchor segment (its proximal joint is the origin of the offset),
 #  offset mm (left side, body axes, scaled with the host), kind, amplitude range mm p2p, jitter mm)
-# kind: skin | muscle | bony | joint | band | wand | acromion | plate:<name>
+# kind: skin | muscle | bony | belt | joint | band | wand | acromion | plate:<name>
 # label "L..." gives a left and a mirrored right marker; other labels are single.
 
 _JOINT_AXIS = object()  # offset placeholder: along the joint's flexion axis
@@ -147,9 +154,9 @@ _HEAD_BAND = [
 ]
 _THORAX = [
     _Spec("C7", "Torso", "Head", (-65, 0, 5), "bony", (3, 6), 5),
-    _Spec("T10", "Torso", "Torso", (-95, 0, 240), "bony", (4, 10), 10),
-    _Spec("CLAV", "Torso", "Head", (95, 0, -50), "bony", (3, 6), 5),
-    _Spec("STRN", "Torso", "Torso", (130, 0, 240), "bony", (4, 8), 10),
+    _Spec("T10", "Torso", "Torso", (-95, 0, 240), "bony", (5, 12), 10),  # the thoracic spine bends
+    _Spec("CLAV", "Torso", "Head", (95, 0, -50), "bony", (3, 8), 5),
+    _Spec("STRN", "Torso", "Torso", (130, 0, 240), "bony", (4, 10), 10),
 ]
 _ARM_JOINTS = [
     _Spec("LSHO", "Torso", "LUpperArm", (-5, 15, 45), "acromion", (3, 8), 5),
@@ -176,8 +183,8 @@ _CMU41 = [
     *_ARM_JOINTS,
     _Spec("LUPA", "LUpperArm", "LUpperArm", (-15, 45, -150), "muscle", (5, 20), 20),
     _Spec("LFRM", "LForearm", "LForearm", (-20, 25, -120), "muscle", (4, 12), 20),
-    _Spec("LFWT", "Pelvis", "Pelvis", (80, 130, 40), "bony", (4, 12), 8),
-    _Spec("LBWT", "Pelvis", "Pelvis", (-110, 55, 50), "bony", (3, 8), 8),
+    _Spec("LFWT", "Pelvis", "Pelvis", (80, 130, 40), "belt", (5, 15), 8),  # on a waist belt, which slides
+    _Spec("LBWT", "Pelvis", "Pelvis", (-110, 55, 50), "belt", (4, 12), 8),
     _Spec("LTHI", "LThigh", "LThigh", (15, 85, -240), "muscle", (10, 30), 30),
     _Spec("LSHN", "LShank", "LShank", (45, 35, -190), "muscle", (5, 15), 25),
     *_LEG_JOINTS, _LMT5,
@@ -220,6 +227,7 @@ _EVERYDAY = {
     "LHip": ((-10, 20), (-60, 15), (-15, 15)), "LAnkle": ((-10, 10), (-20, 25), (-10, 10)),
     "LKnee": ((0, 90),), "LElbow": ((-120, -10),),
 }  # fmt: skip
+_LIMIT = 0.75  # a marker's skin displacement stays within this fraction of its amplitude from the mean
 _CAL_QUANTILE = 0.5  # the amplitude is the p2p displacement of a typical everyday pose (median)
 
 # joints whose angles drive the skin of each segment (the joints at its ends)
@@ -411,7 +419,7 @@ def _skin(placed: _Placed, rv: np.ndarray, rate: float, seed: int, nrng: np.rand
         dc = phic @ C.T
         dc -= dc.mean(0)
         scale = placed.amp[m] / (2.0 * np.quantile(np.linalg.norm(dc, axis=1), _CAL_QUANTILE))
-        out[:, m] = (phi - phic.mean(0)) @ C.T * scale
+        out[:, m] = _soft_limit((phi - phic.mean(0)) @ C.T * scale, _LIMIT * placed.amp[m])
     if placed.kind.count("acromion"):
         for m in (i for i, k in enumerate(placed.kind) if k == "acromion"):
             out[:, m] += _acromion(subj, rv, m)
@@ -437,7 +445,14 @@ def _plate_motion(crng, phi, phic, placed: _Placed, plate: str, h: int):
     idx = [i for i, p in enumerate(placed.plate) if p == plate]
     placed.amp[idx] = a_tr  # a plate's markers share its translation amplitude
     d = (phi - phic.mean(0)) @ C.T
-    return d[:, :3], d[:, 3:]
+    return _soft_limit(d[:, :3], _LIMIT * a_tr), _soft_limit(d[:, 3:], _LIMIT * np.deg2rad(rot_deg))
+
+
+def _soft_limit(d: np.ndarray, limit: float) -> np.ndarray:
+    """(F, 3) displacements shrunk smoothly so that their length stays under ``limit`` (skin stretches
+    only so far): nearly unchanged below ~60 % of it."""
+    n = np.linalg.norm(d, axis=1, keepdims=True) / max(limit, 1e-9)
+    return d / (1.0 + n**4) ** 0.25
 
 
 def _outward_normal(subj: _Subject, h: int, p: np.ndarray) -> np.ndarray:
@@ -451,23 +466,35 @@ def _outward_normal(subj: _Subject, h: int, p: np.ndarray) -> np.ndarray:
     return r / nr if nr > 1e-6 else np.zeros(3)
 
 
-def _acromion(subj: _Subject, rv: np.ndarray, m: int) -> np.ndarray:
-    """(F, 3) displacement of an acromion marker in the thorax frame: it turns about the SC joint
-    by a fraction of the arm's elevation (scapulohumeral rhythm)."""
-    p = subj.marker_rest[m]
-    right = p[1] < 0
+def _girdle(subj: _Subject, rv: np.ndarray, right: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3, 3) rotation of a shoulder girdle in the thorax frame and (3,) its pivot (the
+    sterno-clavicular joint, body frame at rest): the scapulohumeral rhythm. About the pivot the girdle
+    rises by a fifth of the arm's elevation and turns forward (protraction) by a quarter of its forward
+    flexion; it carries the acromion and the shoulder joint centre."""
     sh = _SEG["RUpperArm" if right else "LUpperArm"]
     R = rotvec_to_matrix(rv[:, sh])  # upper arm relative to the thorax (thorax axes)
-    v = R[:, :, 2] * -1.0  # the arm's long axis (rest: straight down)
-    down = np.array([0.0, 0.0, -1.0])
-    k = np.cross(down, v)
-    nk = np.linalg.norm(k, axis=1, keepdims=True)
-    elev = np.arccos(np.clip(v @ down, -1.0, 1.0))
-    axis = np.where(nk > 1e-9, k / np.maximum(nk, 1e-9), 0.0)
-    sc = subj.joint_rest[_SEG["Head"]] + np.array([60.0, -20.0 if right else 20.0, -50.0]) * subj.seg_factor[1]
+    v = -R[:, :, 2]  # the arm's long axis (rest: straight down)
+    elev = np.arccos(np.clip(-v[:, 2], -1.0, 1.0))
+    fwd = np.clip(np.arctan2(v[:, 0], -v[:, 2]), 0.0, None)
+    sign = -1.0 if right else 1.0
+    zero = np.zeros_like(elev)
+    up = rotvec_to_matrix(np.column_stack([sign * _ACROMION_RHYTHM * elev, zero, zero]))
+    forward = rotvec_to_matrix(np.column_stack([zero, zero, -sign * _PROTRACTION * fwd]))
+    sc = subj.joint_rest[_SEG["Head"]] + np.array([60.0, 20.0 * sign, -50.0]) * subj.seg_factor[1]
+    return _matmul33(forward, up), sc
+
+
+def _girdle_shift(subj: _Subject, rv: np.ndarray, right: bool, p: np.ndarray) -> np.ndarray:
+    """(F, 3) displacement (thorax frame) of a point ``p`` (body frame at rest) carried by a shoulder girdle."""
+    Rc, sc = _girdle(subj, rv, right)
     arm = p - sc
-    Rs = rotvec_to_matrix(axis * (_ACROMION_RHYTHM * elev)[:, None])
-    return np.einsum("fij,j->fi", Rs, arm) - arm
+    return np.einsum("fij,j->fi", Rc, arm) - arm
+
+
+def _acromion(subj: _Subject, rv: np.ndarray, m: int) -> np.ndarray:
+    """(F, 3) displacement of an acromion marker in the thorax frame (it rides the shoulder girdle)."""
+    p = subj.marker_rest[m]
+    return _girdle_shift(subj, rv, bool(p[1] < 0), p)
 
 
 # ------------------------------------------------------------------ motions
@@ -624,7 +651,7 @@ def _reach(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.nd
 
 
 def _kick(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.ndarray):
-    """Fighting guard with front and roundhouse kicks of either leg (fast: the foot reaches 6-10 m/s)."""
+    """Fighting guard with front and roundhouse kicks of either leg (fast: the foot reaches 6-10 m/s) and punches."""
     F, T = t.size, float(t[-1])
     # channels per leg: hip (x, y, z), knee; shared: lumbar (x, y, z)
     guard = [0.0, -15.0, 0.0, 20.0]
@@ -658,6 +685,18 @@ def _kick(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.nda
                  row(extend, support, lean), row(chamber, support, [0.5 * x for x in lean]), row(guard, guard, g_trunk)]
         tk = times[-1] + rng.uniform(0.6, 1.2)
     V = _minjerk_keys(t, np.array(times), np.array(keys))
+    # arms: guard, with punches (shoulder forward, elbow straight) in between
+    guard_arm = [20.0, -45.0, -20.0, 110.0]
+    a_times, a_keys = [0.0], [guard_arm * 2]
+    tp = rng.uniform(0.2, 0.8)
+    while tp < T + 1.0:
+        punch = [rng.uniform(0.0, 20.0), -rng.uniform(75.0, 95.0), rng.uniform(-10.0, 15.0), rng.uniform(5.0, 20.0)]
+        row = punch + guard_arm if rng.uniform() < 0.5 else guard_arm + punch
+        d_out, d_back = rng.uniform(0.15, 0.22), rng.uniform(0.2, 0.3)
+        a_times += [tp, tp + d_out, tp + d_out + 0.04, tp + d_out + 0.04 + d_back]
+        a_keys += [guard_arm * 2, row, row, guard_arm * 2]
+        tp = a_times[-1] + rng.uniform(0.4, 1.2)
+    A = _minjerk_keys(t, np.array(a_times), np.array(a_keys))
     rv = np.zeros((F, _S, 3))
     for i, side in enumerate("LR"):
         o = 4 * i
@@ -666,9 +705,8 @@ def _kick(rng: np.random.Generator, t: np.ndarray, subj: _Subject, slack: np.nda
         _put_ball(rv, side + "Hip", V[:, o:o + 3] + var)
         _put_hinge(rv, side + "Knee", V[:, o + 3], sl)
         _put_ball(rv, side + "Ankle", np.column_stack([np.zeros(F), 0.25 * V[:, o + 3] - 5.0, np.zeros(F)]) + 0.5 * var)
-        guard_arm = np.column_stack([np.full(F, 20.0), np.full(F, -45.0), np.full(F, -20.0)])
-        _put_ball(rv, side + "Shoulder", guard_arm + 3.0 * var)
-        _put_hinge(rv, side + "Elbow", -110.0 + 8.0 * _smooth(rng, t, 1, 0.2, 0.8, k=3)[:, 0], sl)
+        _put_ball(rv, side + "Shoulder", A[:, 4 * i:4 * i + 3] + 3.0 * var)
+        _put_hinge(rv, side + "Elbow", -A[:, 4 * i + 3] + 8.0 * _smooth(rng, t, 1, 0.2, 0.8, k=3)[:, 0], sl)
         _put_ball(rv, side + "Wrist", 2.0 * var)
     _put_ball(rv, "Lumbar", V[:, 8:11])
     _put_ball(rv, "Neck", -0.6 * V[:, 8:11] + _smooth(rng, t, 3, 0.05, 0.3) * 2.0)
@@ -809,6 +847,12 @@ def realistic_take(
     t = np.arange(n_frames) / float(rate)
     root_pos, root_rot, rv = _motion(motion, np.random.default_rng(mseed), t, subj, slack)
     G, O, pts = _forward(subj, root_pos, root_rot, rv)
+    # the shoulder girdles carry the arms: the shoulder centres move on the thorax
+    for side in "LR":
+        ua = _SEG[side + "UpperArm"]
+        shift = np.einsum("fij,fj->fi", G[:, _SEG["Torso"]], _girdle_shift(subj, rv, side == "R", subj.joint_rest[ua]))
+        for s in (ua, _SEG[side + "Forearm"], _SEG[side + "Hand"]):
+            O[:, s] += shift
     if motion in ("walk", "run", "reach", "kick"):  # the lower foot touches the floor
         lift = _floor_lift(subj, G, O)
         O[..., 2] += lift[:, None]
