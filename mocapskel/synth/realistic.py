@@ -206,7 +206,6 @@ _PLATES = {
     "LSK": ("LShank", (35, 68, -210), ((1, 0, 0), (0, 0, 1)), (4, 10), 5.0),
 }
 _PLATE_CORNERS = ((35, 30), (-35, 30), (-30, -35), (38, -28))  # (u, v) mm, deliberately not symmetric
-_PLATE_LABEL = {"LUA": "LUA", "LFA": "LFA", "LTH": "LTH", "LSK": "LSK"}
 _CLUSTER = [
     *_HEAD_BAND, *_THORAX, *_PIG_PELVIS, *_ARM_JOINTS, *_LEG_JOINTS, _LMT5,
     *[_Spec(f"{p}{k + 1}", _PLATES[p][0], _PLATES[p][0], (), f"plate:{p}", _PLATES[p][3], 0.0) for p in _PLATES
@@ -239,7 +238,7 @@ _DRIVERS = {
 
 
 def _left(name: str) -> str:
-    return "L" + name[1:] if name.startswith("R") and name not in ("RBAK",) else name
+    return "L" + name[1:] if name.startswith("R") else name
 
 
 def _part(seg: str) -> str:
