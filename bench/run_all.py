@@ -15,6 +15,8 @@ BENCHES = [
     ("Batches: local workers", "bench.batch"),
     ("Real takes", "bench.realdata"),
     ("Humanoid names", "bench.names"),
+    ("Generated takes that look like real captures", "bench.realistic"),
+    ("Real takes with a reference skeleton", "bench.realref"),
 ]
 
 

@@ -52,7 +52,14 @@ def _finite(lo: float, hi: float):
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--frames", type=click.IntRange(min=2, max=1_000_000), default=7200, show_default=True)
 @click.option("--rate", type=float, callback=_finite(1.0, 100_000.0), default=120.0, show_default=True, help="Frames per second (human, linkage; 1 to 100,000).")
-@click.option("--motion", type=click.Choice(["rom", "walk"]), default="rom", show_default=True, help="Human: what the subject does.")
+@click.option("--motion", type=click.Choice(["rom", "walk", "run", "climb", "reach", "kick"]), default="rom", show_default=True,
+              help="Human: what the subject does (run, climb, reach, kick: the realistic generator).")
+@click.option("--markerset", type=click.Choice(["default", "cmu41", "gait", "cluster"]), default="default", show_default=True,
+              help="Human: marker set (cmu41: CMU/Vicon 41-marker full body; gait: lower-body Plug-in-Gait; cluster: "
+                   "4-marker plates + anatomical markers).")
+@click.option("--skin", type=click.Choice(["none", "realistic"]), default="none", show_default=True,
+              help="Human: skin motion driven by the joint angles (thigh 10-30 mm, shank 5-15, upper arm 5-20).")
+@click.option("--wands/--no-wands", default=True, show_default=True, help="Human, gait set: thigh and shank markers on wands.")
 @click.option("--counts", default="4-3-3", show_default=True, help="Chain: markers per segment.")
 @click.option("--link-length", type=float, callback=_finite(1.0, 100_000.0), default=300.0, show_default=True, help="Chain: joint-to-joint length (mm, 1 to 100,000).")
 @click.option("--markers-per-segment", type=click.IntRange(min=1), default=None, help="Human: markers on each segment [default: 48-marker set].")
@@ -65,13 +72,14 @@ def _finite(lo: float, hi: float):
 @click.option("--ghosts", type=click.IntRange(min=0), default=0, show_default=True, help="Ghost markers.")
 @click.option("--passive", is_flag=True, help="New label after every gap (passive system).")
 @common
-def synth_cmd(kind, output, truth_path, seed, frames, rate, motion, counts, link_length, markers_per_segment, scale,
+def synth_cmd(kind, output, truth_path, seed, frames, rate, motion, markerset, skin, wands, counts, link_length, markers_per_segment, scale,
               subject_seed, noise_mm, soft_tissue_mm, gaps, jumps, ghosts, passive):
     """Generate a take with ground truth (joint centres, topology, bone lengths).
 
     \b
     Examples:
         mocapskel synth human -o rom.c3d --noise 1 --soft-tissue 2 --gaps 4
+        mocapskel synth human -o walk.c3d --markerset cmu41 --motion walk --skin realistic --noise 1 --frames 1200
         mocapskel synth linkage -o linkage.trc --noise 0.5 --frames 2400
         mocapskel synth chain --counts 3-2-2-2-2 -o chain.trc --frames 100
     """
@@ -83,7 +91,10 @@ def synth_cmd(kind, output, truth_path, seed, frames, rate, motion, counts, link
         kind=kind, seed=seed, frames=frames, rate=rate, motion=motion, counts=_counts(counts), link_length=link_length,
         markers_per_segment=markers_per_segment, scale=scale, subject_seed=subject_seed, noise_mm=noise_mm,
         soft_tissue_mm=soft_tissue_mm, gaps_per_marker_per_minute=gaps, jumps=jumps, ghosts=ghosts, passive=passive,
+        markerset=markerset, skin=skin, wands=wands,
     )
+    if markers_per_segment is not None and markerset != "default":
+        raise click.BadParameter("applies to the default marker set only", param_hint="--markers-per-segment")
     take = make(recipe)
     from dataclasses import replace
 
