@@ -211,14 +211,22 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
 REFINE_FULL_SEGMENTS = 15
 
 
-def refine_frame_count(frames: int, n_segments: int) -> int:
+#: A short take gives the refinement at most one frame in this many (its frames are close and
+#: alike; a real take of a few seconds spent most of its fit here).
+REFINE_STRIDE = 4
+
+
+def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None) -> int:
     """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
-    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less).
+    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); and at most a quarter of a
+    take of ``take_frames`` (at least 100).
 
     An iteration costs about S^3 per frame (a segment's pose couples with every other's through
     the constant offsets): this keeps a skeleton of 27 segments (a marker set with many markers
     on joints, split into rigid groups) at the cost of one of 15.
     """
+    if take_frames is not None:
+        frames = min(frames, max(100, take_frames // REFINE_STRIDE))
     if n_segments <= REFINE_FULL_SEGMENTS:
         return frames
     return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
@@ -272,7 +280,7 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
 
     pts = skel.joints.topology.segments.markers.points
     vis = np.isfinite(pts).all(-1)
-    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names)), must=skel.rest_frame)
+    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0]), must=skel.rest_frame)
     if use.size < 10:
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))
