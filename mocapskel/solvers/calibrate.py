@@ -226,6 +226,7 @@ def refine_skeleton(
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
     joint_prior: float = 0.0,
+    prior_joints: set | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -244,6 +245,7 @@ def refine_skeleton(
         they hardly fix (a hinge's axis, the twist of a two-marker segment, a joint the take
         barely moves) the prior decides, so the joint stays near its markers instead of sliding
         away at no cost. 0: no prior.
+    prior_joints : the child segments whose joints the prior holds (None: all).
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -261,7 +263,7 @@ def refine_skeleton(
             if parent[int(c)] >= 0]
     d0 = d.copy()
     k_hold = float(max(pr.w.sum(), 1.0))  # mm^-2: a 1 mm move along a held axis costs as much as 1 mm on every marker
-    A, k_prior = _joint_prior_operator(pr, parent), float(joint_prior) * F
+    A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
     g0 = _pack(pr, d, l)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
 
@@ -402,7 +404,7 @@ def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     return g
 
 
-def _joint_prior_operator(pr: _Problem, parent: np.ndarray) -> np.ndarray:
+def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None) -> np.ndarray:
     """(3K, ng) linear map from the constant unknowns to every joint's position relative to the
     marker centroid of each of its two segments (in that segment's frame).
 
@@ -411,6 +413,8 @@ def _joint_prior_operator(pr: _Problem, parent: np.ndarray) -> np.ndarray:
     """
     rows = []
     for c in pr.kids:
+        if only is not None and c not in only:
+            continue
         p = int(parent[c])
         for s, with_d in ((p, True), (c, False)):
             ms = [int(m) for m in pr.used if pr.seg[m] == s]

@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 8
+VERSION = 9
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -147,6 +147,16 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
+            if max(na, nb) >= 3 and min(na, nb) == 2 and np.isfinite(fit.centre).any():
+                # the two markers, in the frame of the other segment, move on spheres about the joint:
+                # Knight's fit of both at once, kept where its joint cost (with the distance penalty) is lower
+                c, side = sphere_centre(groups[a], groups[b])
+                both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
+                if side is not None and joint_cost(c[diag], both, alpha=alpha) < joint_cost(fit.centre[diag], both, alpha=alpha):
+                    centres[:, e], methods[e] = c, "sphere"
+                    per_joint[e]["why"] = (f"segments of {na} and {nb} markers: the two markers on spheres about the joint in"
+                                           " the other segment's frame (MGDK); lower joint cost than JMV")
+                    per_joint[e].pop("note", None)
             # Hang's framework may reach a lower joint cost (exact data): then it wins
             if tree is None:
                 tree = solve_tree(groups, edges, alpha=alpha)

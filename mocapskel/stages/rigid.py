@@ -48,6 +48,10 @@ class Params:
     far: float = 0.5
     """A joint is implausible when it sits farther than this fraction of the subject's marker
     extent from the nearest marker of one of its two segments."""
+    slide: float = 0.1
+    """...or when the refinement moved it, relative to the markers of one of its segments, by
+    more than this fraction of that extent from where the joints stage put it (a slide along
+    a direction the markers do not fix; the refinement corrects rough starts by less)."""
     hold_hinges: bool = True
     """Joints the joints stage placed as hinges keep their position along the hinge axis
     in the refinement (the markers hardly fix it; the joints stage put it in the plane
@@ -256,12 +260,39 @@ def far_joints(skel: Skeleton, far: float) -> list[int]:
     return out
 
 
+def _extent(skel: Skeleton) -> float:
+    seg = skel.marker_segment
+    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
+    P = skel.origin[seg[ok]] + skel.marker_local[ok]
+    return float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max()) if len(P) > 1 else 0.0
+
+
+def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
+    """Segments whose joint to their parent moved, relative to the markers of the parent or of the child,
+    by more than ``slide`` times the subject's marker extent between two fits (rest-pose axes)."""
+    lim = slide * _extent(before)
+    out = []
+    for c in np.flatnonzero(before.parent >= 0):
+        p = int(before.parent[c])
+        for s_, own in ((p, False), (int(c), True)):
+            m = (before.marker_segment == s_) & np.isfinite(before.marker_local).all(1) & np.isfinite(after.marker_local).all(1)
+            if not m.any():
+                continue
+            # the joint relative to the segment's marker centroid: -mean(l) in the child, d_c - mean(l) in the parent
+            rel = [(sk.origin[c] - sk.origin[p] if not own else 0.0) - sk.marker_local[m].mean(0) for sk in (before, after)]
+            if float(np.linalg.norm(rel[1] - rel[0])) > lim:
+                out.append(int(c))
+                break
+    return out
+
+
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
-    """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far."""
+    """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
+    from its markers, or slid far from where the joints stage put it."""
     out = refine_once(skel, params, centres, 0.0)
-    bad = far_joints(out, params.far) if "refined" in out.info else []
+    bad = sorted(set(far_joints(out, params.far)) | set(slid_joints(skel, out, params.slide))) if "refined" in out.info else []
     if bad and params.joint_prior > 0:
-        held = refine_once(skel, params, centres, params.joint_prior)
+        held = refine_once(skel, params, centres, params.joint_prior, set(bad))
         info = dict(held.info)
         info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
                                held_because=[skel.names[c] for c in bad])
@@ -269,7 +300,8 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     return out
 
 
-def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float) -> Skeleton:
+def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float,
+                prior_joints: set | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
     See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
@@ -289,7 +321,7 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
     hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
-                          hold_along=hold, joint_prior=prior)
+                          hold_along=hold, joint_prior=prior, prior_joints=prior_joints)
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],
