@@ -730,7 +730,8 @@ def pair_cost(
     alpha: float,
     frames: int | ArrayLike = 40,
     bases: tuple = (None, None),
-) -> float:
+    return_centre: bool = False,
+) -> float | tuple[float, np.ndarray]:
     """Cheap joint cost of two marker groups, for choosing the topology.
 
     The cost is Kirk's Q of the best joint on a few frames only (Kirk 2005,
@@ -751,6 +752,8 @@ def pair_cost(
     bases : (Basis or None, Basis or None)
         The groups' :func:`~mocapskel.solvers.mtb.mtb_basis` on those frames, when the
         caller has them (a topology scores every pair, each group's basis is made once).
+    return_centre : bool
+        Also return the joint's trajectory on the frames used (K, 3).
 
     Returns
     -------
@@ -767,11 +770,14 @@ def pair_cost(
     else:
         idx = np.asarray(frames, dtype=int)
     a, b = a[idx], b[idx]
+    def out(q: float, c: np.ndarray):
+        return (q, c) if return_centre else q
+
     if a.shape[1] == 0 or b.shape[1] == 0 or a.shape[0] == 0:
-        return float("inf")
+        return out(float("inf"), np.full((a.shape[0], 3), np.nan))
     from .mtb import mtb_basis, mtb_joint
 
-    best = np.inf
+    best, centre = np.inf, None
     tried = False
     for side, name, given in ((a, "a", bases[0]), (b, "b", bases[1])):
         if side.shape[1] >= 3:
@@ -780,16 +786,16 @@ def pair_cost(
                 tried = True
                 # a ranking needs Q to a few digits, not to rounding
                 fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name, tol=1e-6)
-                if np.isfinite(fit.cost):
-                    best = min(best, fit.cost)
+                if np.isfinite(fit.cost) and fit.cost < best:
+                    best, centre = float(fit.cost), fit.centre
     if tried and np.isfinite(best):
-        return float(best)
+        return out(best, centre)
     fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-8)
     if not np.isfinite(fit.cost):
-        return float(fit.cost)
+        return out(float(fit.cost), fit.centre)
     # the joint is free in every frame (3 unknowns a frame): of n markers' distances only n - 3
     # are checked, so the mean variance is scaled to what n - 3 redundant distances leave, as an
     # unbiased variance is — otherwise two groups of one or two markers join anything cheaply
     n = a.shape[1] + b.shape[1]
     var = joint_cost(fit.centre, np.concatenate([a, b], axis=1), alpha=0.0)
-    return float(var * n / max(n - 3, 0.5) + (fit.cost - var))
+    return out(float(var * n / max(n - 3, 0.5) + (fit.cost - var)), fit.centre)

@@ -21,7 +21,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 3
+VERSION = 4
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -40,6 +40,11 @@ class Params:
     segments' markers; Kirk notes it helps where the motion does not exercise every
     degree of freedom)."""
     alpha_k: float = 8.0
+    nearer: float = 0.7
+    """A pair's joint is implausible when some third segment's nearest marker is closer to it
+    than this fraction of the farther of its own two segments' nearest markers."""
+    elsewhere_factor: float = 10.0
+    """Cost factor of such a pair (kept finite: the tree may still need it)."""
 
 
 def _visible(points: np.ndarray) -> np.ndarray:
@@ -137,6 +142,27 @@ def tree_centre(n_nodes: int, edges: np.ndarray, size: dict[int, int]) -> int:
     return min(cands, key=lambda s: (sum(dist[s]), -size.get(s, 0), s))
 
 
+def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int, b: int, ratio: float) -> bool:
+    """Whether the joint ``centre`` (K, 3) of segments ``a`` and ``b`` sits nearer to another segment.
+
+    Each segment's distance is the median over frames of its nearest marker's distance to the joint;
+    the joint belongs elsewhere when another segment's is below ``ratio`` times the larger of ``a``'s
+    and ``b``'s. pts : (K, M, 3) the markers on the same frames.
+    """
+    if centre is None or not np.isfinite(centre).any():
+        return False
+    with np.errstate(invalid="ignore"):
+        d = np.linalg.norm(pts - centre[:, None, :], axis=2)  # (K, M)
+    near = []
+    for mem in members:
+        dm = d[:, mem]
+        ok = np.isfinite(dm).any(axis=1)
+        near.append(float(np.median(np.nanmin(dm[ok], axis=1))) if ok.any() else np.inf)
+    own = max(near[a], near[b])
+    others = [near[s] for s in range(len(members)) if s not in (a, b)]
+    return bool(others) and bool(np.isfinite(own)) and min(others) < ratio * own
+
+
 def run(segments: Segments, params: Params = Params()) -> Topology:
     """Find the tree of segments and direct it away from the root."""
     pts = segments.markers.points
@@ -158,18 +184,26 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     k = min(PAIR_FRAMES, frames.size)
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
+    elsewhere = np.zeros((S, S), dtype=bool)
     for a in range(S):
         for b in range(a + 1, S):
             fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
             if not fr.size:
                 continue
             if fr.size == frames.size and np.array_equal(fr, frames):
-                C[a, b] = C[b, a] = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
-                                              frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]))
+                at = sub
+                q, c = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
+                                 frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]), return_centre=True)
             else:
                 pf = pts[fr]
-                C[a, b] = C[b, a] = pair_cost(pf[:, members[a]], pf[:, members[b]], alpha=alpha,
-                                              frames=PAIR_FRAMES)
+                at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
+                q, c = pair_cost(at[:, members[a]], at[:, members[b]], alpha=alpha, frames=np.arange(at.shape[0]),
+                                 return_centre=True)
+            C[a, b] = C[b, a] = q
+            elsewhere[a, b] = elsewhere[b, a] = _nearer_elsewhere(c, at, members, a, b, params.nearer)
+    # a joint that sits nearer to a third segment's markers than to its own two is not theirs (two
+    # limbs that swing about one axis "join" on it, inside the trunk): taken only if nothing else connects
+    C = np.where(elsewhere, C * params.elsewhere_factor, C)
     tree = minimum_spanning_tree(S, C)
     if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
