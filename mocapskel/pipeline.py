@@ -219,6 +219,13 @@ def fit(
     run.seconds["export"] = time.perf_counter() - t_exp
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
+    t_chk = time.perf_counter()
+    from . import checks
+
+    motion = run.artifact
+    findings = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))
+    checks.add_to_report(report, findings)
+    report["seconds"]["checks"] = round(time.perf_counter() - t_chk, 4)
     return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
 
 
@@ -292,4 +299,9 @@ def solve(
         "seconds": {k: round(v, 4) for k, v in seconds.items()},
         "warnings": warnings,
     }
+    from . import checks
+
+    t = time.perf_counter()
+    checks.add_to_report(report, checks.run_checks(motion, pts))
+    report["seconds"]["checks"] = round(time.perf_counter() - t, 4)
     return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings))

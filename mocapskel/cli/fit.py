@@ -10,7 +10,7 @@ from .. import pipeline
 from ..io.atomic import AtomicOutputs, atomic_open
 from ..io.bvh import write_bvh
 from .main import cli, say_warnings
-from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
+from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options, strict_option
 
 log = logging.getLogger("mocapskel")
 
@@ -28,6 +28,15 @@ def write_markers_out(path, motion, input_path, read) -> None:
     write_markers(path, with_joint_markers(markers, motion))
 
 
+def raise_if_strict(strict: bool, report: dict, source: str) -> None:
+    """With ``--strict``, a failing output check is an error (exit code 4) before anything is written."""
+    from ..checks import Finding, strict_error
+
+    if strict and report.get("checks"):
+        err = strict_error([Finding(c["check"], c["name"], c["message"]) for c in report["checks"]], str(source))
+        raise err
+
+
 def write_report(path, report: dict) -> None:
     with atomic_open(path, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=2, allow_nan=False)
@@ -43,10 +52,11 @@ def write_report(path, report: dict) -> None:
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
 @click.option("--html", "html_path", type=click.Path(), default=None, help="Also write the HTML report (plots, 3-D view) here; needs mocapskel[report].")
+@strict_option
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, html_path, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, html_path, strict, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -69,6 +79,7 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         require_matplotlib()
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
+    raise_if_strict(strict, res.report, input)
     b = res.bvh
     with AtomicOutputs() as out:  # every output appears at the end, or none does
         write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
