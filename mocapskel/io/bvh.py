@@ -1100,3 +1100,57 @@ def bvh_rot_to_lab(R: np.ndarray, up: str = "y") -> np.ndarray:
         Stored as :func:`lab_rot_to_bvh` stores its result.
     """
     return _permute_rot(R, _axes(up).T)
+
+
+# --------------------------------------------------------------------------- rotation order
+
+
+def gimbal_margin(local_rot: np.ndarray) -> np.ndarray:
+    """How far each joint stays from gimbal lock in each rotation order, over a take.
+
+    With order (i, j, k) the middle angle ``b`` has ``sin b = ±R[i, k]``, and the
+    Euler angles turn ``1 / cos b`` times faster than the rotation (near lock a
+    1-degree turn can swing the outer angles by tens of degrees). The margin is
+    ``90 - max |b|`` over frames.
+
+    Parameters
+    ----------
+    local_rot : (F, S, 3, 3) array_like
+
+    Returns
+    -------
+    (S, 6) ndarray
+        Degrees, columns in :data:`~mocapskel.solvers.rotations.ORDERS` order.
+    """
+    from ..solvers.rotations import ORDERS
+
+    R = np.asarray(local_rot, dtype=np.float64)
+    S = R.shape[1]
+    out = np.empty((S, len(ORDERS)))
+    if R.shape[0] == 0:
+        out[:] = 90.0
+        return out
+    top = np.maximum(R.max(axis=0), -R.min(axis=0))  # (S, 3, 3): the largest |R[i, k]| over frames (no copy of R)
+    for n, order in enumerate(ORDERS):
+        i, _, k, _ = _parse_order(order)
+        out[:, n] = 90.0 - np.degrees(np.arcsin(np.clip(top[:, i, k], 0.0, 1.0)))
+    return out
+
+
+def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0) -> str:
+    """One rotation order for every joint of a take, far from gimbal lock.
+
+    ``preferred`` when every joint stays at least ``min_margin_deg`` from lock
+    in it (the Euler angles then turn at most twice as fast as the rotation);
+    otherwise the order whose closest joint stays farthest from lock
+    (``preferred`` first among equals). See :func:`gimbal_margin`.
+    """
+    from ..solvers.rotations import ORDERS
+
+    pref = preferred.upper()
+    _parse_order(pref)
+    worst = gimbal_margin(local_rot).min(axis=0) if np.asarray(local_rot).shape[1] else np.full(len(ORDERS), 90.0)
+    if worst[ORDERS.index(pref)] >= min_margin_deg:
+        return pref
+    cands = [pref] + [o for o in ORDERS if o != pref]
+    return max(cands, key=lambda o: worst[ORDERS.index(o)])

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..io.bvh import BvhSkeleton, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
 
-VERSION = 2
+VERSION = 3
 
 UPS = ("y", "z")
 UNITS = ("cm", "mm", "m")
@@ -25,7 +25,10 @@ UNITS = ("cm", "mm", "m")
 class Params:
     up: str = "y"
     units: str = "cm"
-    order: str = "ZXY"
+    order: str = "auto"
+    """Rotation channel order of every joint; "auto": ZXY unless some joint comes within
+    30 degrees of gimbal lock in it, then the order that keeps joints farthest from lock
+    (:func:`~mocapskel.io.bvh.choose_rotation_order`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +62,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         parent=par,
         offset=offset,
         end_site=lab_to_bvh(sk.end_site[perm], params.up, params.units),
-        order=params.order,
+        order=choose_rotation_order(local) if params.order == "auto" else params.order,
     )
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
     return BvhMotion(bskel, lab_to_bvh(motion.root_pos, params.up, params.units), local, 1.0 / rate)
