@@ -95,7 +95,7 @@ def one(path: str, truth_path: str | None) -> dict:
         write_bvh(out, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
         spikes, worst, orders = euler_spikes(out)
     r = {"result": "ok", "seconds": secs, "frames": mk.n_frames, "segments": len(motion.skeleton.names),
-         "markers_in": int(res.report["input"]["markers"]), "markers_kept": mk.n_markers,
+         "markers_kept": mk.n_markers, "markers_dropped": len((res.report.get("clean") or {}).get("dropped_markers", [])),
          "ik_rms": res.report["ik"]["marker_rms_mm"], "spikes": spikes, "worst_spike": worst, "orders": orders,
          "clean_jumps": int((mk.info.get("clean") or {}).get("jump_samples", 0)), "checks": {}}
     for f in found:
@@ -130,12 +130,13 @@ def _row(name: str, r: dict) -> list:
     if r.get("result") != "ok":
         return [name, r.get("result", "?")] + [""] * (len(CHECKS) + 5)
     seg = f"{r['segments']}/{r['segments_true']}" if "segments_true" in r else str(r["segments"])
-    return [name, "ok", seg, f"{r['markers_kept']}/{r['markers_in']}", *[_cell(r, c) for c in CHECKS],
+    return [name, "ok", seg, f"{r['markers_kept']} ({r['markers_dropped']} dropped, {r['clean_jumps']} jump samples)",
+            *[_cell(r, c) for c in CHECKS],
             f"{r['spikes']}" + (f" (up to {r['worst_spike']:.0f}°)" if r["spikes"] else ""), r["orders"],
             round(r["seconds"], 1)]
 
 
-HEADER = ["take", "result", "segments", "markers kept", "residual", "bone > extent", "joint far", "joint step",
+HEADER = ["take", "result", "segments", "markers kept by clean", "residual", "bone > extent", "joint far", "joint step",
           "rotation flip", "not converged", "Euler spikes", "order", "fit (s)"]
 
 
@@ -154,7 +155,8 @@ def main() -> None:
           "half of it from every marker of its two segments; joint step: a joint moving more in one frame than the "
           "fastest marker plus 20 mm; rotation flip: a joint turning > 90° in one frame while its markers hardly "
           "move; residual: IK rms above 3 × the rigid fit's noise + 10 mm. Euler spikes: joint-frames of the written "
-          "BVH whose rotation channels step > 10° while the rotation turns < 2°. Markers kept: after clean and merge-ids.\n")
+          "BVH whose rotation channels step > 10° while the rotation turns < 2°. Markers kept: after clean and merge-ids "
+          "(dropped: markers clean left with nothing; jump samples: samples clean turned into gaps as jumps).\n")
     if a.only != "real":
         from mocapskel.io.markers import write_markers
         from mocapskel.synth.presets import Recipe, make

@@ -96,7 +96,9 @@ def _reference_run(markers, params: clean.Params):
     F = pts.shape[0]
     vis0 = np.isfinite(pts).all(axis=2)
     pts[~vis0] = np.nan
-    jumps = _reference_find_jumps(pts, markers.rate, params)
+    candidates = _reference_find_jumps(pts, markers.rate, params)
+    # the candidates of markers with rigid partners are judged by them (tested on their own below)
+    jumps = clean.rigid_verdict(pts, vis0, candidates, markers.rate, params) if params.rigid else candidates
     vis = vis0 & ~jumps
     trimmed = np.zeros_like(vis)
     if params.trim_frames > 0 and F > 2 * params.trim_frames:
@@ -110,7 +112,7 @@ def _reference_run(markers, params: clean.Params):
     vis &= ~short_mask
     pts[~vis] = np.nan
     keep = vis.any(axis=0)
-    info = {"jump_samples": int(jumps.sum()), "trimmed_samples": int((trimmed & ~jumps).sum()),
+    info = {"jump_samples": int(jumps.sum()), "jump_candidates": int(candidates.sum()), "trimmed_samples": int((trimmed & ~jumps).sum()),
             "short_run_samples": int((short_mask & ~trimmed).sum()), "short_runs": int(short[1:].sum()),
             "visible_before": int(vis0.sum()), "visible_after": int(vis.sum())}
     return pts[:, keep], info
