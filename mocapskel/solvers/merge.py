@@ -377,7 +377,7 @@ def rigid_steps(
     at once. A frame is an *edge* of label ``i`` when at least two of its
     partners, and more than half of those that can judge, see the change of
     their vector to ``i`` depart from the median of the changes one and two
-    frames before and after, and from the cubic through them, by more than ``step_mm`` and
+    frames before and after, and from the cubic and parabolas through them, by more than ``step_mm`` and
     more than 8 times that pair's median departure (fast turns and low frame
     rates raise the bar). A stretch of a visible
     run between two edges, at most ``max_len`` frames long and shorter than
@@ -426,15 +426,22 @@ def rigid_steps(
     dev = np.linalg.norm(dr - nb, axis=-1)  # (F, P), NaN where it cannot be judged
     # The median predicts a steady turn; a fast turn that speeds up (a far link of a long chain
     # swinging at metres per second) departs from it by its acceleration. The cubic through the
-    # changes 2 and 1 frames before and after follows such a turn to its fifth derivative, but
-    # one jump edge among them moves it: a frame is judged by the smaller of the two departures
-    # (an edge departs from both, a smooth fast turn from the median only, a frame next to an
-    # edge from the cubic only).
-    cub = np.full_like(dr, np.nan)
-    cub[2:-2] = (4.0 * (dr[1:-3] + dr[3:-1]) - (dr[:-4] + dr[4:])) / 6.0
+    # changes 2 and 1 frames before and after, and the parabolas through the 3 changes before
+    # and the 3 after (at the take's ends and next to gaps), follow such a turn, but a jump edge
+    # among their changes moves them: a frame is judged by the smallest of these departures
+    # (an edge departs from all of them, none of which reads its own change; a smooth fast turn
+    # only from the median; a frame next to an edge not from the predictions that skip it).
+    pred = np.full_like(dr, np.nan)
     with np.errstate(invalid="ignore"):
-        dev = np.fmin(dev, np.linalg.norm(dr - cub, axis=-1))
-    del cub
+        pred[2:-2] = (4.0 * (dr[1:-3] + dr[3:-1]) - (dr[:-4] + dr[4:])) / 6.0
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+        pred[:] = np.nan
+        pred[:-3] = 3.0 * (dr[1:-2] - dr[2:-1]) + dr[3:]
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+        pred[:] = np.nan
+        pred[3:] = 3.0 * (dr[2:-1] - dr[1:-2]) + dr[:-3]
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+    del pred
     ok = np.isfinite(dev)
     scale = np.zeros(pi.size)
     judged = ok.any(axis=0)
