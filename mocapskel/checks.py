@@ -5,6 +5,10 @@ along a direction the markers do not fix), and a take in the wrong units or a
 skeleton of another subject can be solved without an error. These checks judge
 the result against the take itself, with no template:
 
+- ``units``         a subject larger than any optical capture volume (marker
+                    extent above 20 m) or smaller than 5 mm: a take in other
+                    units than it says (micrometres labelled mm fit as well as
+                    millimetres: the fit alone cannot tell);
 - ``residual``      a segment's IK marker residual far above the noise its rigid
                     fit measured (more than 3 times that noise plus 10 mm): a take
                     in other units than it says, another subject's skeleton, a
@@ -58,6 +62,10 @@ class Limits:
     """A joint's rotation step (deg, one frame) above this is a flip when the markers hardly move."""
     extent_frames: int = 400
     """Frames sampled to measure the marker extent."""
+    largest_mm: float = 20_000.0
+    """No optical capture volume holds a subject larger than this."""
+    smallest_mm: float = 5.0
+    """...nor one smaller than this."""
 
 
 @dataclass(frozen=True)
@@ -126,6 +134,12 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
     seg = np.asarray(sk.marker_segment)
     out: list[Finding] = []
     extent = marker_extent(points, limits.extent_frames)
+
+    if np.isfinite(extent) and not limits.smallest_mm <= extent <= limits.largest_mm:
+        out.append(Finding("units", "take",
+                           f"the subject's marker extent is {extent:.4g} mm, "
+                           f"{'more' if extent > limits.largest_mm else 'less'} than a capture volume can hold — "
+                           "is the take in other units than it says (mm)?"))
 
     # residual against the rigid fit's noise
     res = np.asarray(motion.residual, dtype=np.float64)

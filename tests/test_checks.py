@@ -57,8 +57,11 @@ def test_micrometre_take_labelled_mm_warns() -> None:
     take = human_take(rng=np.random.default_rng(5), n_frames=1200)
     res = _fit(replace(take.markers, points=take.markers.points * 1000.0))
     found = res.report["checks"]
-    assert any(c["check"] == "residual" for c in found), found
-    assert any(w.startswith("check residual:") and "other units" in w for w in res.report["warnings"])
+    assert any(c["check"] == "units" for c in found), found
+    assert any(w.startswith("check units:") and "other units" in w for w in res.report["warnings"])
+    # the same take in mm passes the units check
+    ok = _fit(take.markers)
+    assert "units" not in {c["check"] for c in ok.report["checks"]}
 
 
 @pytest.fixture(scope="module")
@@ -187,3 +190,14 @@ def test_fit_invariants_on_generated_chains(tmp_path, counts, seed, up, noise) -
     err = np.linalg.norm(pred - pts[:, on], axis=-1)
     rms = float(np.sqrt(np.nanmean(err**2)))
     assert rms < 3.0 * noise + 0.5, rms
+
+
+def test_strict_fit_of_a_micrometre_take_exits_4_and_writes_nothing(tmp_path) -> None:
+    take = human_take(rng=np.random.default_rng(5), n_frames=1200)
+    src = tmp_path / "micro.trc"
+    write_markers(src, replace(take.markers, points=take.markers.points * 1000.0))
+    out, rep = tmp_path / "o.bvh", tmp_path / "o.json"
+    r = CliRunner().invoke(cli, ["fit", str(src), "-o", str(out), "--report", str(rep), "--no-cache", "--strict"])
+    assert r.exit_code == 4, r.output
+    assert "units" in r.output and not out.exists() and not rep.exists()
+    assert not list(tmp_path.glob(".*part"))

@@ -219,8 +219,10 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
     -------
     (F, M) bool ndarray
         At samples seen with two or more reliable rigid partners: the rigid
-        test's verdict (:func:`~mocapskel.solvers.merge.rigid_jumps`) in the
-        blocks of frames around candidates; elsewhere the candidates.
+        test's verdict (:func:`~mocapskel.solvers.merge.rigid_jumps`), and the
+        candidates that also leave most of those partners by half its distance
+        (its *soft* samples), in the blocks of frames around candidates;
+        elsewhere the candidates.
     """
     from ..solvers import merge as mg
     from .merge_ids import _auto_rigid
@@ -252,8 +254,11 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         if not todo[a:b].any():
             continue
         lo, hi = max(0, a - margin), min(F, b + margin)
-        jumps, _ = mg.rigid_jumps(pts[lo:hi], vis[lo:hi], mean, std, reliable, jump_mm=params.rigid_jump_mm,
-                                  step_mm=params.rigid_step_mm, max_len=max_len)
+        jumps, soft = mg.rigid_jumps(pts[lo:hi], vis[lo:hi], mean, std, reliable, jump_mm=params.rigid_jump_mm,
+                                     step_mm=params.rigid_step_mm, max_len=max_len)
+        # a jump: what the rigid test finds, and a candidate off its path that also leaves most of
+        # its partners by half the rigid test's distance (a small jump the partners see less well)
+        jumps |= soft & candidates[lo:hi]
         out[a:b] |= jumps[a - lo : b - lo] & judged[a:b]
     return out
 
