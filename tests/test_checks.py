@@ -53,21 +53,24 @@ def test_a_good_human_fit_passes_every_check(human_fit) -> None:
 
 
 def test_micrometre_take_labelled_mm_warns() -> None:
-    """A noise-free human scaled by 1,000 (micrometres in a file that says mm) fitted with exit 0 and no warning."""
-    take = human_take(rng=np.random.default_rng(5), n_frames=1200)
-    res = _fit(replace(take.markers, points=take.markers.points * 1000.0))
-    found = res.report["checks"]
-    assert any(c["check"] == "units" for c in found), found
-    assert any(w.startswith("check units:") and "other units" in w for w in res.report["warnings"])
-    # the same take in mm passes the units check
-    ok = _fit(take.markers)
-    assert "units" not in {c["check"] for c in ok.report["checks"]}
+    """A noise-free take scaled by 1,000 (micrometres in a file that says mm) fitted with exit 0 and no warning.
+
+    (A generated chain: the same as the human of the report, and fast to fit.)"""
+    take = hang_chain((4, 3, 3, 3), 600, rng=np.random.default_rng(2), link_length=300.0)
+    for k in (1000.0, 0.001):  # micrometres, and metres, labelled mm
+        res = _fit(replace(take.markers, points=take.markers.points * k))
+        assert "units" in {c["check"] for c in res.report["checks"]}, (k, res.report["checks"])
+        assert any(w.startswith("check units:") and "other units" in w for w in res.report["warnings"])
+
+
+def test_a_take_in_mm_passes_the_units_check(human_fit) -> None:
+    assert "units" not in {c["check"] for c in human_fit[1].report["checks"]}
 
 
 @pytest.fixture(scope="module")
 def subject_skel(tmp_path_factory):
     d = tmp_path_factory.mktemp("subject")
-    cal = human_take(rng=np.random.default_rng(6), n_frames=1200, subject_seed=1)
+    cal = human_take(rng=np.random.default_rng(6), n_frames=1200, subject_seed=1, noise_mm=1.0)
     res = _fit(cal.markers)
     write_skeleton(d / "subject.skel", res.motion.skeleton)
     return d
@@ -78,18 +81,18 @@ def test_solve_with_a_subject_of_08_the_size_warns(subject_skel) -> None:
     from mocapskel.io.skeleton import read_skeleton
 
     skel = read_skeleton(subject_skel / "subject.skel")
-    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8)
+    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8, noise_mm=1.0)
     res = pipeline.solve(small.markers, skel, pipeline.make_params())
     assert "residual" in {c["check"] for c in res.report["checks"]}
     # the control: the same subject solves without a residual warning
-    same = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1)
+    same = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, noise_mm=1.0)
     ok = pipeline.solve(same.markers, skel, pipeline.make_params())
     assert "residual" not in {c["check"] for c in ok.report["checks"]}
 
 
 def test_strict_solve_of_another_subject_exits_4_and_writes_nothing(subject_skel) -> None:
     d = subject_skel
-    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8)
+    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8, noise_mm=1.0)
     write_markers(d / "small.trc", small.markers)
     args = ["solve", str(d / "small.trc"), "--skeleton", str(d / "subject.skel"), "-o", str(d / "s.bvh"),
             "--report", str(d / "s.json")]
@@ -193,7 +196,7 @@ def test_fit_invariants_on_generated_chains(tmp_path, counts, seed, up, noise) -
 
 
 def test_strict_fit_of_a_micrometre_take_exits_4_and_writes_nothing(tmp_path) -> None:
-    take = human_take(rng=np.random.default_rng(5), n_frames=1200)
+    take = hang_chain((4, 3, 3, 3), 600, rng=np.random.default_rng(2), link_length=300.0)
     src = tmp_path / "micro.trc"
     write_markers(src, replace(take.markers, points=take.markers.points * 1000.0))
     out, rep = tmp_path / "o.bvh", tmp_path / "o.json"
