@@ -62,3 +62,16 @@ def test_a_real_fast_turn_is_kept() -> None:
     # the leaf's marker line points where it did (its twist about that line is free)
     d = np.degrees(np.arccos(np.clip(np.einsum("fi,fi->f", out[:, 1, :, 0], rot[:, 1, :, 0]), -1, 1)))
     assert d.max() < 1.0
+
+
+def test_frames_where_nothing_is_seen_are_left_alone() -> None:
+    """Regression: a flipped stretch in frames with no marker seen made the new solve raise (nothing to solve)."""
+    rot, root, obs = _truth()
+    flipped = rot.copy()
+    flipped[100:110, 1] = flipped[100:110, 1] @ np.diag([1.0, -1.0, -1.0])
+    obs = obs.copy()
+    obs[95:115] = np.nan
+    res = _residual(flipped, root, obs)
+    out, _, _, info = unflip(PARENT, ORIGIN, SEG, LOCAL, obs, flipped.copy(), root.copy(), res.copy())
+    np.testing.assert_array_equal(out[95:115], flipped[95:115])
+    assert info["frames_changed"] == 0

@@ -1137,20 +1137,43 @@ def gimbal_margin(local_rot: np.ndarray) -> np.ndarray:
     return out
 
 
-def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0) -> str:
+def near_lock_counts(local_rot: np.ndarray, within_deg: float = 20.0) -> np.ndarray:
+    """(6,) joint-frames whose middle angle comes within ``within_deg`` of gimbal lock, per order
+    (:data:`~mocapskel.solvers.rotations.ORDERS`); there the Euler angles turn more than
+    ``1 / sin(within_deg)`` times faster than the rotation."""
+    from ..solvers.rotations import ORDERS
+
+    R = np.asarray(local_rot, dtype=np.float64)
+    lim = np.cos(np.radians(within_deg))  # |sin b| above this
+    out = np.zeros(len(ORDERS), dtype=np.int64)
+    for n, order in enumerate(ORDERS):
+        i, _, k, _ = _parse_order(order)
+        x = R[..., i, k]
+        out[n] = int(np.count_nonzero(x > lim) + np.count_nonzero(x < -lim))
+    return out
+
+
+def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0,
+                          near_deg: float = 20.0) -> str:
     """One rotation order for every joint of a take, far from gimbal lock.
 
     ``preferred`` when every joint stays at least ``min_margin_deg`` from lock
-    in it (the Euler angles then turn at most twice as fast as the rotation);
-    otherwise the order whose closest joint stays farthest from lock
-    (``preferred`` first among equals). See :func:`gimbal_margin`.
+    in it (the Euler angles then turn at most twice as fast as the rotation).
+    Otherwise the order with the fewest joint-frames within ``near_deg`` of
+    lock (:func:`near_lock_counts`: where spikes can appear), and among those
+    the one whose closest joint stays farthest from lock, ``preferred`` first
+    among equals. See :func:`gimbal_margin`.
     """
     from ..solvers.rotations import ORDERS
 
     pref = preferred.upper()
     _parse_order(pref)
-    worst = gimbal_margin(local_rot).min(axis=0) if np.asarray(local_rot).shape[1] else np.full(len(ORDERS), 90.0)
+    R = np.asarray(local_rot)
+    if R.shape[0] == 0 or R.shape[1] == 0:
+        return pref
+    worst = gimbal_margin(R).min(axis=0)
     if worst[ORDERS.index(pref)] >= min_margin_deg:
         return pref
+    near = near_lock_counts(R, near_deg)
     cands = [pref] + [o for o in ORDERS if o != pref]
-    return max(cands, key=lambda o: worst[ORDERS.index(o)])
+    return min(cands, key=lambda o: (near[ORDERS.index(o)], -worst[ORDERS.index(o)]))

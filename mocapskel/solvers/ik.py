@@ -1589,6 +1589,8 @@ def unflip(
         return rot, root_pos, residual, info
     changed = np.zeros(F, dtype=bool)
     rms = _frame_rms(residual)
+    used = np.asarray(marker_segment) >= 0
+    any_seen = np.isfinite(observed[:, used].sum(axis=2)).any(axis=1)  # frames IK can solve again
     for _ in range(passes):
         big = steps > max_step_deg
         bad = np.zeros((F, S), dtype=bool)
@@ -1598,7 +1600,7 @@ def unflip(
             bad[:, s] = length[rid] <= max_run
             if bad[:, s].all():  # nothing steady to hold it to
                 bad[:, s] = False
-        frames = np.flatnonzero(bad.any(axis=1))
+        frames = np.flatnonzero(bad.any(axis=1) & any_seen)
         if not frames.size:
             break
         # the start and prior: every segment as solved, those in a short stretch slerped across it
