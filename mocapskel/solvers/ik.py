@@ -1604,22 +1604,31 @@ def unflip(
         if not frames.size:
             break
         # the start and prior: every segment as solved, those in a short stretch slerped across it
-        prior = rot.copy()
+        start = rot[frames]  # a copy
         for s in np.flatnonzero(bad.any(axis=0)):
-            prior[:, s] = slerp_fill(rot[:, s], ~bad[:, s])
-        start = prior[frames]
-        del prior
+            start[:, s] = slerp_fill(rot[:, s], ~bad[:, s])[frames]
         res = solve_ik(parent, origin, marker_segment, marker_local, observed[frames], init_rot=start,
                        init_root=root_pos[frames], prior_rot=start, iterations=iterations, prior_weight=prior_weight)
+        del start
         new_rms = _frame_rms(res.residual)
         ok = new_rms <= (1.0 + rel_tol) * rms[frames] + abs_tol_mm
         # ...and where the frame's largest turn from or to its neighbours does not grow
         # (judged with every equally good frame taken)
-        cand = rot.copy()
-        cand[frames[ok]] = res.rot[ok]
+        where = np.full(F, -1)
+        where[frames[ok]] = np.flatnonzero(ok)
+
+        def taken(f: np.ndarray) -> np.ndarray:  # rotations of frames f with the equally good ones taken
+            k = where[f]
+            return np.where((k >= 0)[:, None, None, None], res.rot[np.maximum(k, 0)], rot[f])
+
+        worst_new = np.zeros(frames.size)
+        mine = taken(frames)
+        for nb in (frames - 1, frames + 1):
+            inside = (nb >= 0) & (nb < F)
+            turn = _step_angles(np.stack([mine[inside], taken(nb[inside])]))[0].max(axis=-1)
+            worst_new[inside] = np.maximum(worst_new[inside], turn)
+        del mine
         worst_old = _worst_turn(steps, F)[frames]
-        worst_new = _worst_turn(_step_angles(cand), F)[frames]
-        del cand
         ok &= worst_new <= np.maximum(worst_old, max_step_deg)
         if not ok.any():
             break
