@@ -139,6 +139,8 @@ out = {
     "bones": [b.name for b in arm.pose.bones],
     "leaves": [b.name for b in arm.pose.bones if not b.children],
     "frames": args["frames"],
+    "rest": {b.name: [list(arm.matrix_world @ b.head_local), list(arm.matrix_world @ b.tail_local)]
+             for b in arm.data.bones},
     "heads": [],
     "tails": [],
 }
@@ -175,6 +177,7 @@ class Result:
     seconds: float
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    rest_bones: dict = field(default_factory=dict)  # bone name -> (head, tail) at rest, Blender world in mm
 
     @property
     def ok(self) -> bool:
@@ -226,19 +229,20 @@ def run_blender(bvh: Path, out: Path, axis_forward: str, axis_up: str, frames: l
 
 
 def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
-                blender: str, timeout: float = 600.0, tolerance: float = TOLERANCE_MM) -> Result:
+                blender: str, timeout: float = 600.0, tolerance: float = TOLERANCE_MM,
+                names: str = "auto", rest: str = "frame") -> Result:
     """Write the BVH of a fitted ``motion`` for (up, units) into ``work``, import it in Blender
-    and compare with ``segment_origins(motion)`` at the 0-based ``frames``.
+    and compare with ``export.joint_positions_lab(motion, bvh)`` (the fitted tree's joints,
+    by BVH joint name, from the motion alone) at the 0-based ``frames``.
 
     Raises RuntimeError when Blender fails, subprocess.TimeoutExpired after ``timeout`` s.
     """
     from mocapskel.io.bvh import UNIT_SCALE, bvh_to_lab, forward_kinematics, read_bvh, write_bvh
-    from mocapskel.kinematics import segment_origins
     from mocapskel.stages import export
 
-    p = export.Params(up=up, units=units)
+    p = export.Params(up=up, units=units, names=names, rest=rest)
     bvh = export.run(motion, p)  # the export stage fit() ends with, in this frame
-    path = work / f"take_up{up}_{units}.bvh"
+    path = work / f"take_up{up}_{units}_{names}_{rest}.bvh"
     write_bvh(path, bvh.skeleton, bvh.root_pos, bvh.local_rot, bvh.frame_time)
     axis_forward, axis_up = FRAMES[(up, units)]
     t = time.perf_counter()
@@ -247,9 +251,9 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
     seconds = time.perf_counter() - t
 
     scale = UNIT_SCALE[units]
-    names = list(motion.skeleton.names)
+    names = list(bvh.skeleton.names)
     F = motion.rot.shape[0]
-    expect = segment_origins(motion)[frames]  # (n, S, 3) lab mm
+    expect = export.joint_positions_lab(motion, bvh)[frames]  # (n, S, 3) lab mm, BVH joint order
     bones = got["bones"]
     problems: list[str] = []
     notes: list[str] = []
@@ -269,7 +273,8 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
 
     # the file alone (its rounding), by our own float64 reader: the part of the error that is not Blender's
     wskel, wroot, wlocal, _ = read_bvh(path)
-    mine = bvh_to_lab(forward_kinematics(wskel, wroot[frames], wlocal[frames]), up, units)
+    mine_bvh, mine_rot = forward_kinematics(wskel, wroot[frames], wlocal[frames], with_rot=True)
+    mine = bvh_to_lab(mine_bvh, up, units)
     file_err = np.linalg.norm(mine[:, [list(wskel.names).index(n) for n in common]] - expect[:, si], axis=-1)
 
     # leaves: Blender's tail is the End Site as written in the file
@@ -277,9 +282,10 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
     es_err = np.zeros((len(frames), 0))
     if leaf_names:
         S_lab = [names.index(n) for n in leaf_names]
-        end_lab = np.stack([bvh_to_lab(wskel.end_site[wskel.names.index(n)], up, units) for n in leaf_names])
-        rot = motion.rot[frames][:, S_lab]  # (n, L, 3, 3)
-        tails_expect = expect[:, S_lab] + np.einsum("flij,lj->fli", rot, end_lab)
+        # the End Site as written, carried by the file's own rotations (float64)
+        wi = [wskel.names.index(n) for n in leaf_names]
+        tails_bvh = mine_bvh[:, wi] + np.einsum("flij,lj->fli", mine_rot[:, wi], wskel.end_site[wi])
+        tails_expect = expect[:, S_lab] + (bvh_to_lab(tails_bvh, up, units) - mine[:, wi])
         tails = np.asarray(got["tails"], dtype=np.float64)[:, [bones.index(n) for n in leaf_names]] * scale
         es_err = np.linalg.norm(tails - tails_expect, axis=-1)
 
@@ -310,6 +316,7 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
         file_max_mm=float(file_err.max()),
         frames_in_file=F, frames_in_blender=n_keys, fps_expected=fps_expected, fps_in_blender=fps_got,
         blender=got["blender"], seconds=seconds, problems=problems, notes=notes,
+        rest_bones={k: np.asarray(v, dtype=np.float64) * scale for k, v in got["rest"].items()},
     )
 
 

@@ -15,6 +15,9 @@ BENCHES = [
     ("Batches: local workers", "bench.batch"),
     ("Real takes", "bench.realdata"),
     ("Output checks: real and generated takes", "bench.checks"),
+    ("Humanoid names", "bench.names"),
+    ("Generated takes that look like real captures", "bench.realistic"),
+    ("Real takes with a reference skeleton", "bench.realref"),
 ]
 
 

@@ -1,3 +1,3 @@
-from .cli.main import main
+from ._entry import main
 
 main()

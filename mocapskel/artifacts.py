@@ -20,7 +20,6 @@ import dataclasses
 import io
 import json
 import os
-import zipfile
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
@@ -233,7 +232,10 @@ def _flatten(obj: Any, prefix: str, out: dict[str, np.ndarray], refs: dict[int, 
 
 
 def _unflatten(data: dict[str, np.ndarray], prefix: str, resolve: Callable[[str], Any] | None = None) -> Any:
-    kind = str(data[prefix + "__kind__"])
+    k = data[prefix + "__kind__"]
+    kind = str(k) if k.shape == () and k.dtype.kind == "U" else None
+    if kind not in ARTIFACT_TYPES:
+        raise _Invalid(f"unknown artifact kind {str(k)[:40]!r}")
     cls = ARTIFACT_TYPES[kind]
     kwargs = {}
     for f in dataclasses.fields(cls):
@@ -247,13 +249,20 @@ def _unflatten(data: dict[str, np.ndarray], prefix: str, resolve: Callable[[str]
         elif key + "/__kind__" in data:
             kwargs[f.name] = _unflatten(data, key + "/", resolve)
         elif key + "__json__" in data:
+            if data[key + "__json__"].shape != () or data[key + "__json__"].dtype.kind != "U":
+                raise _Invalid(f"{key} is not JSON text")
             kwargs[f.name] = json.loads(str(data[key + "__json__"]))
         elif key + "__strs__" in data:
-            kwargs[f.name] = tuple(str(s) for s in data[key + "__strs__"])
+            a = data[key + "__strs__"]
+            if a.ndim != 1 or a.dtype.kind != "U":
+                raise _Invalid(f"{key} is not a list of text")
+            kwargs[f.name] = tuple(str(s) for s in a)
         elif key in data:
             v = data[key]
             if v.ndim == 0:
                 v = v.item()
+                if isinstance(v, bytes):
+                    raise _Invalid(f"{key} holds bytes")
             kwargs[f.name] = v
         # else: a field added later with a default
     return cls(**kwargs)
@@ -269,14 +278,27 @@ def _json_default(o: Any) -> Any:
     raise TypeError(type(o).__name__)
 
 
+def to_arrays(obj: Any, refs: dict[int, str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays an artifact is saved as (see :func:`to_bytes`)."""
+    out: dict[str, np.ndarray] = {"__schema__": np.array(SCHEMA)}
+    _flatten(obj, "", out, refs)
+    return out
+
+
+def arrays_bytes(out: dict[str, np.ndarray]) -> bytes:
+    """The bytes of an ``.npz`` file holding ``out``."""
+    buf = io.BytesIO()
+    np.savez(buf, **out)
+    return buf.getvalue()
+
+
 def to_bytes(obj: Any, refs: dict[int, str] | None = None) -> bytes:
     """Serialise an artifact to the bytes of an ``.npz`` file.
 
     ``refs`` maps ``id()`` of nested artifacts to a reference string stored in
     their place (the cache stores an upstream artifact once, by its key).
     """
-    out: dict[str, np.ndarray] = {"__schema__": np.array(SCHEMA)}
-    _flatten(obj, "", out, refs)
+    out = to_arrays(obj, refs)
     buf = io.BytesIO()
     np.savez(buf, **out)
     return buf.getvalue()
@@ -289,26 +311,264 @@ def save(obj: Any, path: str | os.PathLike, refs: dict[int, str] | None = None) 
     atomic_write_bytes(path, to_bytes(obj, refs))
 
 
+class Unresolved(LookupError):
+    """Raised by a ``resolve`` callback that cannot give the artifact a reference names; passed through by
+    :func:`from_arrays` (the caller decides what a missing upstream means)."""
+
+
+def read_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` file (no pickles). Raises InputError when it cannot be read as one."""
+    try:  # open the file here: np.load leaks its own handle when the zip is damaged (ResourceWarning)
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise ValueError("a single array, not an archive of arrays")
+            return {k: z[k] for k in z.files}
+    except OSError as e:
+        raise InputError(f"not a readable mocapskel artifact ({e.strerror or e}) — re-run the stage that wrote it", str(path)) from None
+    except Exception as e:  # a damaged or crafted archive makes np.load and zipfile raise all kinds of errors
+        what = str(e).splitlines()[0][:120] if str(e) else type(e).__name__
+        raise InputError(f"not a readable mocapskel artifact ({what}) — re-run the stage that wrote it", str(path)) from None
+
+
+def from_arrays(data: dict[str, np.ndarray], path: str = "", resolve: Callable[[str], Any] | None = None) -> Any:
+    """The artifact held by the arrays of an ``.npz`` file, checked (types, shapes, ranges, consistency).
+
+    Raises
+    ------
+    InputError
+        Not a mocapskel artifact, another schema, or a damaged or inconsistent one.
+    Unresolved
+        ``resolve`` could not give an upstream artifact.
+    """
+    where = path or None
+    if "__schema__" not in data or "__kind__" not in data:
+        raise InputError("a .npz file but not a mocapskel artifact — give a take or a file written by mocapskel", where)
+    sc = data["__schema__"]
+    if sc.shape != () or sc.dtype.kind not in "iu":
+        raise InputError(
+            f"not a mocapskel artifact (its schema is a {sc.dtype} array of shape {sc.shape}, not a number)"
+            " — give a take or a file written by mocapskel", where)
+    if int(sc) != SCHEMA:
+        raise InputError(f"artifact schema {int(sc)} is not this version's ({SCHEMA}) — re-run from the take", where)
+    try:
+        obj = _unflatten(data, "", resolve)
+        validate(obj)
+    except Unresolved:
+        raise
+    except _Invalid as e:
+        raise InputError(f"damaged mocapskel artifact ({e}) — re-run the stage that wrote it", where) from None
+    except RecursionError:
+        raise InputError("damaged mocapskel artifact (its artifacts nest too deep) — re-run the stage that wrote it", where) from None
+    except Exception as e:  # a crafted file: whatever the constructors choke on
+        what = f"{type(e).__name__}: {str(e).splitlines()[0][:120]}" if str(e) else type(e).__name__
+        raise InputError(f"damaged mocapskel artifact ({what}) — re-run the stage that wrote it", where) from None
+    return obj
+
+
 def load(path: str | os.PathLike, resolve: Callable[[str], Any] | None = None) -> Any:
-    """Load an artifact saved by :func:`save`. Raises InputError when it is not one.
+    """Load an artifact saved by :func:`save`, checked. Raises InputError when it is not one.
 
     ``resolve`` turns a stored reference back into the artifact (see :func:`to_bytes`).
     """
-    try:  # open the file here: np.load leaks its own handle when the zip is damaged (ResourceWarning)
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
-        raise InputError(f"not a readable mocapskel artifact ({e}) — re-run the stage that wrote it", str(path)) from None
-    if "__schema__" not in data or "__kind__" not in data:
-        raise InputError("a .npz file but not a mocapskel artifact — give a take or a file written by mocapskel", str(path))
-    if int(data["__schema__"]) != SCHEMA:
-        raise InputError(
-            f"artifact schema {int(data['__schema__'])} is not this version's ({SCHEMA}) — re-run from the take", str(path)
-        )
-    try:
-        return _unflatten(data, "", resolve)
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"damaged mocapskel artifact ({e}) — re-run the stage that wrote it", str(path)) from None
+    from .io.paths import require_regular_file
+
+    require_regular_file(path, "a .npz artifact written by mocapskel")
+    return from_arrays(read_arrays(path), str(path), resolve)
+
+
+# --------------------------------------------------------------------------- checks
+
+
+class _Invalid(ValueError):
+    """What is wrong with an artifact's content."""
+
+
+#: Positions beyond this (mm, 10 km) come from no capture volume (the readers' limit).
+_MAX_MM = 1e7
+_STAGES_OF_MARKERS = ("read", "clean", "merge-ids")
+
+
+def _need(cond: bool, msg: str) -> None:
+    if not cond:
+        raise _Invalid(msg)
+
+
+def _array(obj: Any, name: str, shape: tuple, kinds: str = "f", *, finite: bool = False, limit: float | None = None,
+           inf_ok: bool = False) -> np.ndarray:
+    """Check field ``name``: an ndarray of dtype kind in ``kinds`` and ``shape`` (None: any length).
+
+    Float fields may hold NaN (gaps), never inf; ``finite``: no NaN either; ``limit``: largest magnitude.
+    """
+    a = getattr(obj, name)
+    what = f"{obj.kind}.{name}"
+    _need(isinstance(a, np.ndarray), f"{what} is not an array")
+    _need(a.dtype.kind in kinds, f"{what} holds {a.dtype} values")
+    _need(a.ndim == len(shape) and all(n is None or n == m for n, m in zip(shape, a.shape)),
+          f"{what} has shape {a.shape}, expected {tuple('any' if n is None else n for n in shape)}")
+    if a.dtype.kind == "f" and a.size:
+        _need(inf_ok or not np.isinf(a).any(), f"{what} holds infinite values")
+        if finite:
+            _need(not np.isnan(a).any(), f"{what} holds NaN")
+        if limit is not None:
+            big = np.fmax.reduce(np.abs(a), axis=None)
+            _need(not big > limit, f"{what} holds values up to {big:.3g}, beyond {limit:g}")
+    return a
+
+
+def _scalar(obj: Any, name: str, types: tuple) -> Any:
+    v = getattr(obj, name)
+    _need(isinstance(v, types) and not isinstance(v, (bool, np.bool_)),
+          f"{obj.kind}.{name} is a {type(v).__name__}, not a {'/'.join(t.__name__ for t in types)}")
+    return v
+
+
+def _strings(obj: Any, name: str, n: int | None, unique: bool = False) -> tuple:
+    v = getattr(obj, name)
+    _need(isinstance(v, tuple) and all(isinstance(x, str) for x in v), f"{obj.kind}.{name} is not a list of text")
+    _need(n is None or len(v) == n, f"{obj.kind}.{name} has {len(v)} entries for {n}")
+    _need(not unique or len(set(v)) == len(v), f"{obj.kind}.{name} repeats names")
+    return v
+
+
+def _nested(obj: Any, name: str, cls: type, optional: bool = False) -> Any:
+    v = getattr(obj, name)
+    if v is None and optional:
+        return v
+    _need(isinstance(v, cls), f"{obj.kind}.{name} is not a {cls.kind} artifact")
+    return v
+
+
+def _info(obj: Any) -> None:
+    info = obj.info
+    _need(isinstance(info, dict), f"{obj.kind}.info is not a JSON object")
+    lists = {"warnings": str, "excluded": str, "left_out": str, "groups": list, "split": list, "per_joint": dict}
+    for key, t in lists.items():
+        if key in info:
+            v = info[key]
+            _need(isinstance(v, list) and all(isinstance(x, t) for x in v), f"{obj.kind}.info['{key}'] is not a list of {t.__name__}")
+    for key in ("rms_mm", "filled_fraction"):
+        if info.get(key) is not None:
+            _need(isinstance(info[key], (int, float)) and not isinstance(info[key], bool), f"{obj.kind}.info['{key}'] is not a number")
+    for key in ("rms_mm_per_segment", "refined", "clean", "merge_ids", "excluded_why", "renamed"):
+        if info.get(key) is not None:
+            _need(isinstance(info[key], dict), f"{obj.kind}.info['{key}'] is not a JSON object")
+
+
+def _tree(parent: np.ndarray, what: str) -> None:
+    """One root (-1), every other entry a valid index, and no cycle."""
+    S = parent.size
+    _need(np.count_nonzero(parent < 0) == 1 and (parent >= -1).all() and (parent < S).all(),
+          f"{what} is not a tree (one root, parents among the segments)")
+    depth = np.zeros(S, dtype=np.int64)
+    cur = parent.copy()
+    for _ in range(S):  # after S steps up, every walk has reached the root (-1) unless it loops
+        live = cur >= 0
+        if not live.any():
+            return
+        depth[live] += 1
+        cur[live] = parent[cur[live]]
+    _need(not (cur >= 0).any(), f"{what} has a cycle (a segment is its own ancestor)")
+
+
+def validate(obj: Any) -> None:
+    """Check an artifact and every artifact it holds: types, shapes, ranges and their consistency.
+
+    Raises ``ValueError`` (an internal subclass) naming the first field that is wrong.
+    """
+    from .io.markers import MAX_RATE_HZ, MIN_RATE_HZ
+
+    def rate_ok(o: Any) -> None:
+        r = _scalar(o, "rate", (int, float, np.integer, np.floating))
+        _need(MIN_RATE_HZ <= float(r) <= MAX_RATE_HZ, f"{o.kind}.rate {float(r):g} Hz is not a capture rate")
+
+    _need(type(obj) in ARTIFACT_TYPES.values(), f"not an artifact ({type(obj).__name__})")
+    chain = []
+    o = obj
+    while o is not None:  # the artifact and those it was computed from, last first
+        chain.append(o)
+        o = {"markers": None, "segments": "markers", "topology": "segments", "joints": "topology",
+             "skeleton": "joints", "motion": "skeleton"}[o.kind]
+        o = getattr(chain[-1], o) if o else None
+        _need(o is None or type(o) in ARTIFACT_TYPES.values(), f"{chain[-1].kind} holds something that is not an artifact")
+    _need(chain[-1].kind == "markers", f"the {chain[-1].kind} artifact does not carry the markers it was computed from")
+    F = M = S = E = None
+    for o in reversed(chain):
+        _info(o)
+        if o.kind == "markers":
+            pts = _array(o, "points", (None, None, 3), limit=_MAX_MM)
+            F, M = pts.shape[:2]
+            _need(F >= 1 and M >= 1, f"markers.points has shape {pts.shape}: no frames or no markers")
+            _strings(o, "labels", M, unique=True)
+            rate_ok(o)
+            for name in ("units", "source", "stage"):
+                _scalar(o, name, (str,))
+            _need(o.stage in _STAGES_OF_MARKERS, f"markers.stage {o.stage!r} is none of {', '.join(_STAGES_OF_MARKERS)}")
+        elif o.kind == "segments":
+            _nested(o, "markers", Markers)
+            g = _array(o, "group", (M,), "iu")
+            _need(bool((g >= -1).all()), "segments.group holds values below -1")
+            S = o.n_segments
+            _need(set(np.unique(g[g >= 0]).tolist()) == set(range(S)), "segments.group skips segment numbers")
+            _array(o, "dist_std", (M, M))
+            _array(o, "eigvals", (None,))
+        elif o.kind == "topology":
+            _nested(o, "segments", Segments)
+            _need(S >= 2, f"topology of {S} segment(s)")
+            edges = _array(o, "edges", (S - 1, 2), "iu")
+            _array(o, "cost", (S - 1,))
+            _array(o, "pair_cost", (S, S), inf_ok=True)
+            root = _scalar(o, "root", (int, np.integer))
+            _need(0 <= root < S, f"topology.root {root} is not a segment")
+            _need(bool((edges >= 0).all() and (edges < S).all()), "topology.edges name segments that do not exist")
+            parent = np.full(S, -1, dtype=np.int64)
+            _need(np.unique(edges[:, 1]).size == S - 1 and root not in edges[:, 1].tolist(),
+                  "topology.edges do not give every segment but the root one parent")
+            parent[edges[:, 1]] = edges[:, 0]
+            _tree(parent, "topology.edges")
+            E = S - 1
+        elif o.kind == "joints":
+            _nested(o, "topology", Topology)
+            shape = (F, E, 3)
+            _array(o, "centres", shape, limit=_MAX_MM)
+            _strings(o, "method", E)
+            _array(o, "residual", (E,))
+            if o.alt_centres is not None:
+                _array(o, "alt_centres", shape, limit=_MAX_MM)
+        elif o.kind == "skeleton":
+            has_joints = _nested(o, "joints", Joints, optional=True) is not None
+            names = _strings(o, "names", S if has_joints else None, unique=True)
+            S = len(names)
+            _need(S >= 1, "skeleton without segments")
+            parent = _array(o, "parent", (S,), "iu")
+            _tree(parent.astype(np.int64), "skeleton.parent")
+            _array(o, "origin", (S, 3), finite=True, limit=_MAX_MM)
+            _array(o, "end_site", (S, 3), finite=True, limit=_MAX_MM)
+            _array(o, "bone_length", (S,), limit=_MAX_MM)
+            _array(o, "noise", (S,), limit=_MAX_MM)
+            labels = _strings(o, "labels", M if has_joints else None, unique=True)
+            M = len(labels)
+            ms = _array(o, "marker_segment", (M,), "iu")
+            _need(bool(((ms >= -1) & (ms < S)).all()), "skeleton.marker_segment names segments that do not exist")
+            _array(o, "marker_local", (M, 3), limit=_MAX_MM)
+            rest = _scalar(o, "rest_frame", (int, np.integer))
+            _need(rest >= 0 and (F is None or rest < F), f"skeleton.rest_frame {rest} is outside the take")
+            poses = (o.pose_frames, o.pose_rot, o.pose_root)
+            _need(all(p is None for p in poses) or all(p is not None for p in poses), "skeleton poses are incomplete")
+            if o.pose_frames is not None:
+                pf = _array(o, "pose_frames", (None,), "iu")
+                K = pf.size
+                _need(F is None or bool(((pf >= 0) & (pf < F)).all()), "skeleton.pose_frames are outside the take")
+                _array(o, "pose_rot", (K, S, 3, 3), limit=1.0 + 1e-6)
+                _array(o, "pose_root", (K, 3), limit=_MAX_MM)
+        elif o.kind == "motion":
+            _nested(o, "skeleton", Skeleton)
+            rp = _array(o, "root_pos", (None, 3), limit=_MAX_MM)
+            _need(rp.shape[0] >= 1 and (F is None or rp.shape[0] == F), f"motion of {rp.shape[0]} frames for a take of {F}")
+            Fm = rp.shape[0]
+            _array(o, "rot", (Fm, S, 3, 3), limit=1.0 + 1e-6)
+            _array(o, "residual", (Fm, M))
+            rate_ok(o)
+            _scalar(o, "source", (str,))
 
 
 def markers_of(obj: Any) -> Markers:

@@ -751,6 +751,9 @@ def read_summary(path: str | os.PathLike) -> list[dict[str, str]]:
 # --------------------------------------------------------------------------- skeletons and proportions
 
 
+_REPORT_FIX = "give the JSON written by 'fit --report' or 'batch', unedited"
+
+
 @dataclass(frozen=True)
 class Bones:
     """A fitted skeleton's tree and bone lengths, from a report's ``bones`` (and ``segments``).
@@ -792,19 +795,25 @@ class Bones:
             parents = [b.get("parent") for b in bones]
             lengths = [b.get("length_mm") for b in bones]
         except (KeyError, TypeError, AttributeError):
-            raise InputError("damaged report: every bone needs 'segment', 'parent' and 'length_mm'", source or None) from None
+            raise InputError("damaged report: every bone needs 'segment', 'parent' and 'length_mm' — " + _REPORT_FIX, source or None) from None
         index = {n: i for i, n in enumerate(names)}
         if len(index) != len(names):
-            raise InputError("damaged report: repeated segment names in 'bones'", source or None)
+            raise InputError("damaged report: repeated segment names in 'bones' — " + _REPORT_FIX, source or None)
         try:
             parent = np.array([-1 if p is None else index[str(p)] for p in parents], dtype=int)
-        except KeyError as e:
-            raise InputError(f"damaged report: bone parent {e.args[0]!r} is not a segment", source or None) from None
+        except (KeyError, TypeError) as e:
+            raise InputError(f"damaged report: bone parent {str(e.args[0])[:40]!r} is not a segment — {_REPORT_FIX}", source or None) from None
+        bad = [x for x in lengths if x is not None and (isinstance(x, bool) or not isinstance(x, (int, float))
+                                                         or not 0 <= float(x) <= 1e7)]
+        if bad:
+            raise InputError(f"damaged report: bone length {str(bad[0])[:40]!r} is not a length in mm (0 to 1e7)"
+                             f" — {_REPORT_FIX}", source or None)
         length = np.array([np.nan if x is None else float(x) for x in lengths], dtype=float)
         if np.count_nonzero(parent < 0) != 1 or not _is_tree(parent):
-            raise InputError("damaged report: the bones do not form one tree", source or None)
+            raise InputError(f"damaged report: the bones do not form one tree — {_REPORT_FIX}", source or None)
         seg_labels = {}
-        for s in report.get("segments", []) or []:
+        segments = report.get("segments")
+        for s in segments if isinstance(segments, list) else []:
             if isinstance(s, dict) and "name" in s and isinstance(s.get("markers"), list):
                 seg_labels[str(s["name"])] = frozenset(str(m) for m in s["markers"])
         labels = tuple(seg_labels.get(n, frozenset()) for n in names)

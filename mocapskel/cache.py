@@ -1,12 +1,18 @@
 """The artifact cache: skip stages whose inputs and parameters have not changed.
 
 Key = SHA-256 of a canonical JSON record {stage, stage VERSION, params,
-upstream key}; the first key is the hash of the input file's bytes (and the
-reader's options). Entries are ``<key>.npz`` files written atomically; an
-entry holds its upstream artifact by reference (that artifact's key), so the
-markers of a take are stored once, not once per stage. An entry that cannot be
-read is deleted, recomputed and reported; one whose upstream entry is gone is
-simply recomputed.
+upstream key, cache format}; the first key is the hash of the input file's
+bytes (and the reader's options). Entries are ``<key>.npz`` files written
+atomically; an entry holds its upstream artifact by reference (that artifact's
+key), so the markers of a take are stored once, not once per stage.
+
+Every entry also holds its own key (``__cache_key__``) and a SHA-256 of its
+arrays (``__cache_digest__``), both checked when it is read: an entry that
+cannot be read, that holds another key (entries swapped or copied over each
+other) or whose arrays do not match the digest (truncated, edited, a flipped
+bit) is deleted, recomputed and reported. An entry whose upstream entry is
+gone is simply recomputed. Upstream references are followed in a loop, never
+by recursion, and a chain that comes back to an entry already seen is damage.
 """
 from __future__ import annotations
 
@@ -18,8 +24,11 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from . import artifacts
 from .errors import InputError
+from .io.atomic import atomic_write_bytes
 
 log = logging.getLogger("mocapskel")
 
@@ -39,14 +48,29 @@ def file_key(path: str | os.PathLike, extra: Any = None) -> str:
     return h.hexdigest()
 
 
+#: Layout of cache entries; part of every key, so that entries of another layout are never read.
+CACHE_FORMAT = 2
+#: Longest chain of upstream references an entry may have (one per stage, with room to spare).
+_MAX_CHAIN = 32
+
+
 def stage_key(stage: str, version: int, params: Any, upstream: str) -> str:
     p = dataclasses.asdict(params) if dataclasses.is_dataclass(params) else params
-    rec = json.dumps({"stage": stage, "version": version, "params": p, "upstream": upstream}, sort_keys=True, default=str)
+    rec = json.dumps({"stage": stage, "version": version, "params": p, "upstream": upstream, "cache": CACHE_FORMAT},
+                     sort_keys=True, default=str)
     return hashlib.sha256(rec.encode()).hexdigest()
 
 
-class _MissingUpstream(LookupError):
-    """A cache entry refers to an upstream entry that is gone."""
+def digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 of an entry's arrays (names, dtypes, shapes and bytes), leaving out the ``__cache_*`` ones."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name.startswith("__cache_"):
+            continue
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}\0{a.dtype.str}\0{a.shape}\0".encode())
+        h.update(a.reshape(-1).view(np.uint8) if a.size else b"")
+    return h.hexdigest()
 
 
 class Cache:
@@ -68,32 +92,74 @@ class Cache:
                 log.warning(msg)
                 self.warnings.append(msg)
 
-    def get(self, key: str, stage: str) -> Any | None:
-        """The artifact stored under ``key`` (its upstream artifacts resolved by key), or None."""
+    def get(self, key: str, stage: str, upstream: tuple[str, Any] | None = None) -> Any | None:
+        """The artifact stored under ``key``, or None (not there, or damaged: then deleted, with a warning).
+
+        ``upstream`` = (key, artifact) of the artifact the entry was computed from, when the caller
+        has it: the entry's reference must name that key, and the artifact is used as is. Otherwise
+        the chain of references is read from the cache, entry by entry.
+        """
         if self.folder is None:
             return None
+        chain: list[tuple[str, dict]] = []
+        base = None
+        k = key
+        while True:
+            data = self._read(k, stage)
+            if data is None:
+                return None
+            chain.append((k, data))
+            refs = [n for n in data if n.endswith("__ref__")]
+            if not refs:
+                break
+            ref = data[refs[0]]
+            ref = str(ref) if len(refs) == 1 and ref.shape == () and ref.dtype.kind == "U" else ""
+            if upstream is not None and k == key:
+                if ref != upstream[0]:
+                    self._discard(k, stage, "refers to another upstream artifact than its key says")
+                    return None
+                base = upstream[1]
+                break
+            if not ref or ref in {c[0] for c in chain} or len(chain) > _MAX_CHAIN:
+                self._discard(k, stage, "refers back to itself through its upstream entries")
+                return None
+            k = ref
+        obj = base
+        for k, data in reversed(chain):
+            try:
+                obj = artifacts.from_arrays(data, str(self.folder / f"{k}.npz"), resolve=lambda ref, up=obj: up)
+            except InputError:
+                self._discard(k, stage, "was unreadable")
+                return None
+        return obj
+
+    def _read(self, key: str, stage: str) -> dict | None:
+        """The checked arrays of entry ``key``; None when it is missing or damaged (then deleted)."""
         path = self.folder / f"{key}.npz"
-        if not path.exists():
+        if not path.is_file():
             return None
         try:
-            return artifacts.load(path, resolve=lambda ref: self._upstream(ref, stage))
-        except _MissingUpstream:
-            return None
+            data = artifacts.read_arrays(path)
         except InputError:
-            msg = f"{stage}: cache entry {path.name} was unreadable — deleted and recomputed"
-            log.warning(msg)
-            self.warnings.append(msg)
-            try:
-                path.unlink()
-            except OSError:
-                pass
+            self._discard(key, stage, "was unreadable")
             return None
+        stored, dig = data.get("__cache_key__"), data.get("__cache_digest__")
+        if stored is None or dig is None or stored.shape != () or str(stored) != key:
+            self._discard(key, stage, "does not hold the artifact its name says (swapped, copied or from another version)")
+            return None
+        if dig.shape != () or str(dig) != digest(data):
+            self._discard(key, stage, "does not match its checksum (edited or damaged)")
+            return None
+        return data
 
-    def _upstream(self, ref: str, stage: str) -> Any:
-        obj = self.get(ref, stage)
-        if obj is None:
-            raise _MissingUpstream(ref)
-        return obj
+    def _discard(self, key: str, stage: str, why: str) -> None:
+        msg = f"{stage}: cache entry {key}.npz {why} — deleted and recomputed"
+        log.warning(msg)
+        self.warnings.append(msg)
+        try:
+            (self.folder / f"{key}.npz").unlink()
+        except OSError:
+            pass
 
     def put(self, key: str, obj: Any, upstream: tuple[Any, str] | None = None) -> None:
         """Store ``obj`` under ``key``; ``upstream`` = (artifact nested in obj, its key) is stored by reference."""
@@ -101,7 +167,10 @@ class Cache:
             return
         refs = {id(upstream[0]): upstream[1]} if upstream is not None else None
         try:
-            artifacts.save(obj, self.folder / f"{key}.npz", refs=refs)
+            arrays = artifacts.to_arrays(obj, refs)
+            arrays["__cache_key__"] = np.array(key)
+            arrays["__cache_digest__"] = np.array(digest(arrays))
+            atomic_write_bytes(self.folder / f"{key}.npz", artifacts.arrays_bytes(arrays))
         except OSError as e:
             msg = f"could not write cache entry ({e.strerror}) — continuing without it"
             log.warning(msg)

@@ -19,7 +19,7 @@ from typing import Any, Callable
 from . import artifacts
 from .artifacts import Markers
 from .cache import Cache, file_key, stage_key
-from .errors import InputError, UsageError
+from .errors import DataError, InputError, UsageError
 
 log = logging.getLogger("mocapskel")
 
@@ -140,7 +140,8 @@ def run_until(
         p = params.get(stage) or mod.Params()
         k = stage_key(stage, mod.VERSION, p, run.key)
         t = time.perf_counter()
-        hit = cache.get(k, stage) if key != "memory" else None
+        # the upstream artifact is the one in hand: an entry's reference is checked against its key, never followed
+        hit = cache.get(k, stage, upstream=(run.key, run.artifact)) if key != "memory" else None
         if hit is not None:
             run.artifact = hit
             run.cached.append(stage)
@@ -153,7 +154,14 @@ def run_until(
                 run.artifact = None
                 run.artifact = mod.run(before, p, consume=True)
             else:
-                run.artifact = mod.run(before, p)
+                try:
+                    run.artifact = mod.run(before, p)
+                except DataError as e:
+                    if stage not in ("segment", "topology"):
+                        raise
+                    from .diagnose import explain
+
+                    raise explain(before, e) from None  # what is wrong with the take, not its consequence
             if key != "memory":
                 # the upstream artifact is stored by reference when it is itself a cache entry
                 up = (before, before_key) if stage != STAGES[_index(have) + 1] else None
@@ -173,6 +181,8 @@ def make_params(
     rest_frame: int | None = None,
     up: str = "y",
     units: str = "cm",
+    names: str = "auto",
+    rest: str = "frame",
 ) -> dict[str, Any]:
     """Stage parameters from the command line's options."""
     from .stages import export, joints, rigid, segment
@@ -181,18 +191,34 @@ def make_params(
         "segment": segment.Params(n_segments=segments),
         "joints": joints.Params(method=joint_method),
         "rigid": rigid.Params(rest_frame=rest_frame),
-        "export": export.Params(up=up, units=units),
+        "export": export.Params(up=up, units=units, names=names, rest=rest),
     }
 
 
 @dataclass
 class FitResult:
-    """The outcome of :func:`fit`: the solved motion, its BVH form and the report."""
+    """The outcome of :func:`fit`: the solved motion, its BVH form and the report.
+
+    ``subjects``: when the take holds several subjects, one FitResult per subject (this
+    one is the first); empty for a take of one subject.
+    """
 
     motion: Any
     bvh: Any
     report: dict
     run: Run
+    subjects: list["FitResult"] = field(default_factory=list)
+
+
+def _chain(a: Run, b: Run) -> Run:
+    """Run ``b`` continued from run ``a`` (its seconds, cached stages and warnings first)."""
+    return Run(artifact=b.artifact, key=b.key, seconds={**a.seconds, **b.seconds}, cached=a.cached + b.cached,
+               warnings=a.warnings + [w for w in b.warnings if w not in a.warnings])
+
+
+def _early(source: Any) -> bool:
+    """Whether ``source`` (an artifact) is still before the segment stage."""
+    return stage_of(source) in ("read", "clean", "merge-ids")
 
 
 def fit(
@@ -205,28 +231,99 @@ def fit(
 ) -> FitResult:
     """Fit a skeleton to a take and solve every frame: read → … → ik → export.
 
+    Between merge-ids and segment, the markers are split into subjects when the
+    take holds several (see :mod:`mocapskel.subjects`); each is then fitted on
+    its own and ``result.subjects`` holds one result per subject.
+
     Nothing is written: the caller writes ``result.bvh`` (see
     :func:`mocapskel.io.bvh.write_bvh`) and ``result.report`` as it likes.
     """
     from .report import build_report
     from .stages import export
+    from .subjects import split_subjects
 
     params = dict(params or {})
+    cache = cache or Cache(None)
     t = time.perf_counter()
-    run = run_until(source, "ik", params, cache=cache, read=read, progress=progress)
+    key = None
+    if isinstance(source, (str, os.PathLike)) and Path(source).suffix.lower() == ARTIFACT_SUFFIX:
+        source, key = read_input(source, read, hash_content=cache.folder is not None)
+    groups = None
+    if isinstance(source, (str, os.PathLike)) or _early(source):
+        first = run_until(source, "merge-ids", params, cache=cache, read=read, key=key, progress=progress)
+        groups = split_subjects(first.artifact)
+        if groups is None:
+            rest = run_until(first.artifact, "ik", params, cache=cache, key=None if first.key == "memory" else first.key,
+                             progress=progress)
+            run = _chain(first, rest)
+    else:
+        run = run_until(source, "ik", params, cache=cache, read=read, key=key, progress=progress)
+    if groups is not None:
+        return _fit_subjects(first, groups, params, cache, progress, t)
     t_exp = time.perf_counter()
     bvh = export.run(run.artifact, params.get("export") or export.Params())
     run.seconds["export"] = time.perf_counter() - t_exp
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
-    t_chk = time.perf_counter()
+    _finish_report(report, run, bvh)
+    return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
+
+
+def _finish_report(report: dict, run: Run, bvh: Any) -> None:
+    """The export's naming and notes, and the checks of the solved motion, into ``report``."""
     from . import checks
 
+    report["export"] = bvh.report()
+    report["warnings"].extend(bvh.notes)
+    t_chk = time.perf_counter()
     motion = run.artifact
     findings = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))
     checks.add_to_report(report, findings)
     report["seconds"]["checks"] = round(time.perf_counter() - t_chk, 4)
-    return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
+
+
+def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache,
+                  progress: Callable[[str], None] | None, t0: float) -> FitResult:
+    """Fit every subject's markers on their own, from the segment stage on."""
+    from .errors import MocapskelError
+    from .report import build_report
+    from .stages import export
+    from .subjects import subset
+
+    K = len(groups)
+    mk_all = first.artifact
+    log.info("%d subjects in the take (%s markers): fitted one by one", K, ", ".join(str(len(g)) for g in groups))
+    results: list[FitResult] = []
+    for i, idx in enumerate(groups, 1):
+        t = time.perf_counter()
+        mk = subset(mk_all, idx, i, K)
+        key = None if first.key == "memory" else stage_key("subject", 1, {"index": i, "of": K, "labels": list(mk.labels)}, first.key)
+        try:
+            rest = run_until(mk, "ik", params, cache=cache, key=key, progress=progress)
+        except MocapskelError as e:
+            e.args = (f"subject {i} of {K} ({len(idx)} markers, {mk.labels[0]} …): {e.args[0]}",) + e.args[1:]
+            raise
+        run = _chain(first, rest)
+        t_exp = time.perf_counter()
+        bvh = export.run(run.artifact, params.get("export") or export.Params())
+        run.seconds["export"] = time.perf_counter() - t_exp
+        run.seconds["subject_total"] = time.perf_counter() - t
+        run.seconds["total"] = time.perf_counter() - t0
+        run.warnings.append(f"the take holds {K} subjects; this fit is subject {i} ({len(idx)} markers)")
+        report = build_report(run, params)
+        _finish_report(report, run, bvh)
+        results.append(FitResult(motion=run.artifact, bvh=bvh, report=report, run=run))
+    listing = [
+        {"index": i, "markers": [mk_all.labels[j] for j in g], "segments": len(r.bvh.skeleton.names),
+         "marker_rms_mm": r.report.get("ik", {}).get("marker_rms_mm")}
+        for i, (g, r) in enumerate(zip(groups, results), 1)
+    ]
+    for i, r in enumerate(results, 1):
+        r.report["subject"] = {"index": i, "of": K}
+        r.report["subjects"] = listing
+    main = results[0]
+    main.subjects = results
+    return main
 
 
 def solve(
@@ -296,8 +393,9 @@ def solve(
             "marker_rms_mm_per_segment": motion.info.get("rms_mm_per_segment", {}),
             "filled_fraction": motion.info.get("filled_fraction"),
         },
+        "export": bvh.report(),
         "seconds": {k: round(v, 4) for k, v in seconds.items()},
-        "warnings": warnings,
+        "warnings": warnings + list(bvh.notes),
     }
     from . import checks
 

@@ -53,7 +53,7 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
             for s in range(segs.n_segments)
         ]
         rep["segments_left_out"] = [mk.labels[i] for i in np.flatnonzero(segs.group < 0)]
-        rep["segments_split"] = list(segs.info.get("split", []))
+        rep["segments_moved"] = list(segs.info.get("moved", []))
     if topo is not None:
         rep["topology"] = {
             "root": skel.names[topo.root],

@@ -38,11 +38,14 @@ def motion():
     return fit_motion(take.markers).motion
 
 
-@pytest.mark.parametrize(("up", "units"), list(FRAMES))
-def test_blender_puts_every_bone_where_our_forward_kinematics_does(motion, up, units, tmp_path):
+CASES = [(up, units, "frame") for up, units in FRAMES] + [("y", "cm", "tpose"), ("z", "mm", "apose")]
+
+
+@pytest.mark.parametrize(("up", "units", "rest"), CASES)
+def test_blender_puts_every_bone_where_our_forward_kinematics_does(motion, up, units, rest, tmp_path):
     F = motion.rot.shape[0]
     frames = pick_frames(F, None)  # every frame
-    r = check_frame(motion, up, units, tmp_path, frames, blender=BLENDER, timeout=TIMEOUT_S)
+    r = check_frame(motion, up, units, tmp_path, frames, blender=BLENDER, timeout=TIMEOUT_S, rest=rest)
     assert r.bones_compared == len(motion.skeleton.names)
     assert r.frames_compared == F
     assert r.max_mm <= TOLERANCE_MM, r.problems
@@ -50,3 +53,23 @@ def test_blender_puts_every_bone_where_our_forward_kinematics_does(motion, up, u
     assert r.frames_in_blender == F
     assert r.fps_in_blender == pytest.approx(100.0, rel=1e-9)
     assert r.ok, r.problems
+
+
+@pytest.mark.parametrize("rest", ["tpose", "apose"])
+def test_blender_shows_the_tpose_or_apose_at_rest(motion, rest, tmp_path):
+    r = check_frame(motion, "y", "cm", tmp_path, [0], blender=BLENDER, timeout=TIMEOUT_S, rest=rest)
+    assert r.ok, r.problems
+
+    def direction(bone: str) -> np.ndarray:
+        head, tail = r.rest_bones[bone]
+        return (tail - head) / np.linalg.norm(tail - head)  # Blender world = lab: Z up, the subject's left +X
+
+    s = np.sqrt(0.5)
+    arm = {"tpose": [1.0, 0.0, 0.0], "apose": [s, 0.0, -s]}[rest]
+    for bone in ("LeftArm", "LeftForeArm"):
+        np.testing.assert_allclose(direction(bone), arm, atol=1e-4)
+    for bone in ("RightArm", "RightForeArm"):
+        np.testing.assert_allclose(direction(bone), [-arm[0], 0.0, arm[2]], atol=1e-4)
+    for bone in ("LeftUpLeg", "LeftLeg", "RightUpLeg", "RightLeg"):
+        np.testing.assert_allclose(direction(bone), [0.0, 0.0, -1.0], atol=1e-4)
+    assert direction("Spine")[2] > 0.95

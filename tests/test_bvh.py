@@ -297,7 +297,7 @@ def test_design_rules_hold_in_the_text(seed: int) -> None:
     assert all(c == ["3", *rot] for c in layout["channels"][1:]) and len(layout["channels"]) == S
     assert layout["frames"] == f"Frames: {F}"
     m = re.fullmatch(r"Frame Time: (\d+\.\d{8,})", layout["frame_time"])
-    assert m and float(m.group(1)) == pytest.approx(1 / rate, rel=1e-6)
+    assert m and 1 / float(m.group(1)) == pytest.approx(rate, rel=1e-9)
     assert len(layout["motion"]) == F and all(len(l.split()) == 3 + 3 * S for l in layout["motion"])
     n_leaves = S - len(set(skel.parent[1:].tolist()))
     assert len(layout["end_sites"]) == n_leaves
@@ -434,7 +434,7 @@ def _good_text() -> str:
         (lambda t: t.replace("MOTION", "ROOT Two\n{\nOFFSET 0 0 0\n}\nMOTION"), "second ROOT"),
         (lambda t: t.replace("Frames: 3", "Frames: 4"), "says 4 but the file has 3"),
         (lambda t: t.replace("Frames: 3", "Frames 3"), "Frames: <count>"),
-        (lambda t: t.replace("Frame Time: 0.01000000", "Frame Time: -1"), "Frame Time"),
+        (lambda t: re.sub(r"Frame Time: \S+", "Frame Time: -1", t), "Frame Time"),
         (lambda t: t.rstrip("\n") + " 1.5\n", r"values where the CHANNELS declare"),
         (lambda t: re.sub(r"\S+\s*$", "abc\n", t), "line 44: a motion value is not a number"),
         (lambda t: re.sub(r"\S+\s*$", "nan\n", t), "line 44: a motion value is not finite"),
@@ -618,3 +618,26 @@ def test_global_to_local_rot_matches_matmul_in_any_layout() -> None:
         got = global_to_local_rot(parent, rot)
         np.testing.assert_allclose(got, want, rtol=0, atol=4e-16)
         assert got.strides == rot.strides
+
+
+@pytest.mark.parametrize("rate", [1.0, 23.976, 24.0, 25.0, 29.97, 30.0, 50.0, 59.94, 60.0, 100.0, 120.0, 148.0,
+                                  150.0, 200.0, 240.0, 250.0, 300.0, 360.0, 480.0, 500.0, 960.0, 1000.0, 2000.0, 10000.0])
+def test_frame_time_reads_back_as_the_rate(tmp_path: Path, rate: float) -> None:
+    skel = BvhSkeleton(("A", "B"), np.array([-1, 0]), np.array([[0.0, 0, 0], [0, 1, 0]]), np.zeros((2, 3)))
+    path = tmp_path / "r.bvh"
+    write_bvh(path, skel, np.zeros((2, 3)), np.broadcast_to(np.eye(3), (2, 2, 3, 3)), 1.0 / rate)
+    line = next(l for l in path.read_text().splitlines() if l.startswith("Frame Time:"))
+    written = line.split(":", 1)[1].strip()
+    assert len(written.split(".")[1]) >= 8
+    _, _, _, frame_time = read_bvh(path)
+    assert float(written) == frame_time
+    # the rate an importer computes as 1 / Frame Time, to 10 significant digits
+    assert abs(1.0 / frame_time - rate) <= 5e-10 * rate
+    assert round(1.0 / frame_time, 6) == rate
+
+
+def test_frame_time_of_120_hz_is_written_with_ten_digits() -> None:
+    from mocapskel.io.bvh import format_frame_time
+
+    assert format_frame_time(1 / 120) == "0.008333333333"
+    assert format_frame_time(0.01) == "0.01000000000"

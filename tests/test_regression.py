@@ -69,7 +69,7 @@ def test_bvh_read_by_bvhio_matches_our_forward_kinematics(human_fit, tmp_path, u
     from mocapskel.stages import export
 
     res, _ = human_fit
-    b = export.run(res.motion, export.Params(up=up, units=units))
+    b = export.run(res.motion, export.Params(up=up, units=units, names="segments"))
     path = tmp_path / "h.bvh"
     write_bvh(path, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
     frames = [0, 1, res.motion.rot.shape[0] // 2, res.motion.rot.shape[0] - 1]
@@ -81,3 +81,19 @@ def test_bvh_read_by_bvhio_matches_our_forward_kinematics(human_fit, tmp_path, u
         lab = bvh_to_lab(theirs[name], up=up, units=units)
         # bvhio computes in float32: allow its rounding (about 1e-7 relative of ~2 m coordinates)
         np.testing.assert_allclose(lab, ours[frames, s], atol=0.05)
+
+
+@pytest.mark.parametrize("rest", ["frame", "tpose"])
+def test_humanoid_bvh_read_by_bvhio_puts_every_joint_where_the_fit_does(human_fit, tmp_path, rest):
+    from mocapskel.stages import export
+
+    res, _ = human_fit
+    b = export.run(res.motion, export.Params(rest=rest))  # the default: humanoid names, rooted at the hips
+    assert b.naming.humanoid and b.skeleton.names[0] == "Hips"
+    path = tmp_path / "h.bvh"
+    write_bvh(path, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    frames = [0, 1, res.motion.rot.shape[0] // 2, res.motion.rot.shape[0] - 1]
+    theirs = _bvhio_positions(path, frames)
+    ours = export.joint_positions_lab(res.motion, b)  # from the fitted tree's joints alone
+    for i, name in enumerate(b.skeleton.names):
+        np.testing.assert_allclose(bvh_to_lab(theirs[name]), ours[frames, i], atol=0.05)

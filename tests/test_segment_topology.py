@@ -129,7 +129,7 @@ def test_topology_of_a_long_take_reads_each_frame_once(linkage):
     fr = topology.pair_frames(seen[:, a], seen[:, b], frames, topology.Params().n_frames)
     from mocapskel.solvers.jmv import pair_cost
 
-    assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topology.Params().alpha)
+    assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topo.info["alpha"])
 
 
 def test_average_linkage_heights_match_scipy():

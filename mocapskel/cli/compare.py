@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 import numpy as np
@@ -15,14 +14,12 @@ from .options import common
 
 def load_report(path: str) -> Bones:
     """The skeleton of a fit report JSON (InputError when it is missing, unreadable or not a report)."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError("no such file — check the path", path)
-    if p.is_dir():
-        raise InputError("is a folder — give a report JSON", path)
+    from ..io.paths import require_regular_file
+
+    p = require_regular_file(path, "the report JSON written by 'fit --report' or 'batch'")
     try:
         rep = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(f"not a JSON report ({type(e).__name__}) — give the JSON written by 'fit --report' or 'batch'", path) from None
     return Bones.from_report(rep, path)
 

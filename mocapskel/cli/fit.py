@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import click
 
@@ -10,22 +11,68 @@ from .. import pipeline
 from ..io.atomic import AtomicOutputs, atomic_open
 from ..io.bvh import write_bvh
 from .main import cli, say_warnings
-from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options, strict_option
+from .options import (
+    bvh_options,
+    cache_options,
+    check_output,
+    common,
+    fit_options,
+    make_cache,
+    make_read,
+    naming_options,
+    read_options,
+    strict_option,
+)
 
 log = logging.getLogger("mocapskel")
 
 
-def write_markers_out(path, motion, input_path, read) -> None:
-    """The take's markers (as read) plus one virtual marker per joint centre, as C3D or TRC."""
-    from ..io.markers import write_markers
-    from ..kinematics import with_joint_markers
+def write_markers_out(path, motion, input_path, read, labels=None, bvh=None) -> None:
+    """The take plus one virtual marker per joint centre, as C3D or TRC.
 
+    From a C3D take to a C3D file: the input file itself with the joint points
+    added (analogs, force plates, events, parameters kept). Otherwise the
+    take's markers as read (only ``labels``, when given: one subject of
+    several) plus the joint points.
+    """
+    from dataclasses import replace
+
+    from ..io.markers import write_markers
+    from ..kinematics import joint_points, with_joint_markers
+
+    naming = bvh.naming if bvh is not None else None
+    if str(path).lower().endswith(".c3d") and str(input_path).lower().endswith(".c3d"):
+        from ..io.c3d_points import FrameCountMismatch, add_points
+
+        labels, desc, pts = joint_points(motion, naming)
+        try:
+            add_points(input_path, path, labels, desc, pts)
+            return
+        except FrameCountMismatch as e:  # a take longer than ezc3d reads (65535 frames)
+            log.warning("warning: %s; --markers-out holds the markers and joint points only", e)
     markers, _ = pipeline.read_input(input_path, read)
     markers = pipeline.artifacts.markers_of(markers)
+    if labels is not None:  # one subject of several
+        keep = set(labels)
+        idx = [i for i, l in enumerate(markers.labels) if l in keep]
+        markers = replace(markers, points=markers.points[:, idx], labels=tuple(markers.labels[i] for i in idx))
     if markers.n_frames != motion.root_pos.shape[0]:  # pragma: no cover - same take
         raise ValueError("markers and motion differ in frame count")
     # keep only the labels the fit used, so that gaps and cleaning are as solved
-    write_markers(path, with_joint_markers(markers, motion))
+    write_markers(path, with_joint_markers(markers, motion, naming))
+
+
+def write_outputs(out, output, gltf_path, b) -> None:
+    """The motion as BVH (or glTF, by the output's extension), and as glTF too when asked."""
+    for path in (output, gltf_path):
+        if not path:
+            continue
+        if str(path).lower().endswith((".glb", ".gltf")):
+            from ..io.gltf import write_gltf
+
+            write_gltf(out.stage(path), b.skeleton, b.root_pos, b.local_rot, b.frame_time, up=b.up, units=b.units)
+        else:
+            write_bvh(out.stage(path), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
 
 
 def raise_if_strict(strict: bool, report: dict, source: str) -> None:
@@ -48,6 +95,8 @@ def write_report(path, report: dict) -> None:
 @click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
 @fit_options
 @bvh_options
+@naming_options
+@click.option("--gltf", "gltf_path", type=click.Path(), default=None, help="Also write the skeleton and its motion as glTF 2.0 (.glb or .gltf).")
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write the JSON report here.")
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
@@ -56,7 +105,7 @@ def write_report(path, report: dict) -> None:
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report_path, skeleton_out, markers_out, html_path, strict, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, html_path, strict, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -64,7 +113,9 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
         mocapskel fit take.c3d -o take.bvh
         mocapskel fit take.trc -o take.bvh --up z --units mm --report take.json
     """
-    check_output(output, input, suffixes=(".bvh",))
+    check_output(output, input, suffixes=(".bvh", ".glb", ".gltf"))
+    if gltf_path:
+        check_output(gltf_path, input, suffixes=(".glb", ".gltf"))
     if report_path:
         check_output(report_path, input, suffixes=(".json",))
     if skeleton_out:
@@ -77,29 +128,52 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, report
 
         check_output(html_path, input, suffixes=HTML_SUFFIXES)
         require_matplotlib()
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+                                  names=names, rest=rest)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
-    raise_if_strict(strict, res.report, input)
-    b = res.bvh
+    for r in (res.subjects if len(res.subjects) > 1 else [res]):
+        raise_if_strict(strict, r.report, input)
+    several = len(res.subjects) > 1
+    fits = res.subjects if several else [res]
+    for r in fits:  # one subject: the names as given; several: OUT_1.bvh, OUT_2.bvh … and likewise every output
+        r.report.setdefault("outputs", {})
+        for what, path in (("bvh", output), ("gltf", gltf_path), ("report", report_path), ("skeleton", skeleton_out),
+                           ("markers", markers_out), ("html", html_path)):
+            if path:
+                r.report["outputs"][what] = numbered(path, r.report["subject"]["index"]) if several else str(path)
+        if several:
+            for item in r.report["subjects"]:
+                item["bvh"] = numbered(output, item["index"])
     with AtomicOutputs() as out:  # every output appears at the end, or none does
-        write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-        if report_path:
-            write_report(out.stage(report_path), res.report)
-        if skeleton_out:
-            from ..io.skeleton import write_skeleton
+        for r in fits:
+            o = r.report["outputs"]
+            b = r.bvh
+            write_outputs(out, o["bvh"], o.get("gltf"), b)
+            if report_path:
+                write_report(out.stage(o["report"]), r.report)
+            if skeleton_out:
+                from ..io.skeleton import write_skeleton
 
-            write_skeleton(out.stage(skeleton_out), res.motion.skeleton, source=res.report["input"]["file"])
-        if markers_out:
-            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
-        if html_path:
-            from .report import write_html_report
+                write_skeleton(out.stage(o["skeleton"]), r.motion.skeleton, source=r.report["input"]["file"])
+            if markers_out:
+                labels = r.motion.skeleton.labels if several else None
+                write_markers_out(out.stage(o["markers"]), r.motion, input, make_read(exclude, include), labels, b)
+            if html_path:
+                from .report import write_html_report
 
-            write_html_report(out.stage(html_path), res)
-    ik = res.report["ik"]
-    rms = ik.get("marker_rms_mm")
-    log.info(
-        "wrote %s: %d segments, %d frames, marker rms %s mm (%.1f s)",
-        output, len(b.skeleton.names), b.root_pos.shape[0],
-        f"{rms:.2f}" if rms is not None else "n/a", res.run.seconds.get("total", 0.0),
-    )
-    say_warnings(res.report.get("warnings", []))
+                write_html_report(out.stage(o["html"]), r)
+    for r in fits:
+        b = r.bvh
+        rms = r.report["ik"].get("marker_rms_mm")
+        log.info(
+            "wrote %s: %d segments, %d frames, marker rms %s mm (%.1f s)",
+            r.report["outputs"]["bvh"], len(b.skeleton.names), b.root_pos.shape[0],
+            f"{rms:.2f}" if rms is not None else "n/a", r.run.seconds.get("total", 0.0),
+        )
+    say_warnings([w for r in fits for w in r.report.get("warnings", [])])
+
+
+def numbered(path, index: int) -> str:
+    """``take.bvh`` → ``take_2.bvh``: the output of one subject of several."""
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}_{index}{p.suffix}"))

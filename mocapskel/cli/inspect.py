@@ -1,13 +1,11 @@
 """``mocapskel inspect``: what a take, artifact or BVH file holds."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import click
 import numpy as np
 
 from .. import artifacts
-from ..errors import InputError
 from .main import cli
 from .options import common, read_options
 
@@ -22,7 +20,7 @@ def describe_markers(m: artifacts.Markers) -> list[str]:
         f"stage       {m.stage}",
     ]
     if m.info.get("excluded"):
-        lines.append(f"excluded    {', '.join(m.info['excluded'])}")
+        lines.append(f"excluded    {', '.join(map(str, m.info['excluded']))}")
     for w in m.info.get("warnings", []) or []:
         lines.append(f"warning     {w}")
     per = vis.mean(0) if vis.size else np.zeros(m.n_markers)
@@ -36,7 +34,7 @@ def describe_artifact(obj) -> list[str]:
     if obj.kind == "segments":
         lines.append(f"segments    {obj.n_segments}")
         for g, labels in enumerate(obj.info.get("groups", [])):
-            lines.append(f"  {g:3d}  {' '.join(labels)}")
+            lines.append(f"  {g:3d}  {' '.join(map(str, labels))}")
     elif obj.kind == "topology":
         lines.append(f"root        {obj.root}")
         lines += [f"  {a:3d} -> {b:3d}  cost {c:.3g}" for (a, b), c in zip(obj.edges.tolist(), obj.cost.tolist())]
@@ -48,7 +46,7 @@ def describe_artifact(obj) -> list[str]:
             lines.append(f"  {n:12s} parent {sk.names[p] if p >= 0 else '-':12s} bone {sk.bone_length[s]:.1f} mm")
         if obj.kind == "motion":
             lines.append(f"frames      {obj.root_pos.shape[0]}")
-            if obj.info.get("rms_mm") is not None:
+            if isinstance(obj.info.get("rms_mm"), (int, float)):
                 lines.append(f"marker rms  {obj.info['rms_mm']:.2f} mm")
     if mk is not None:
         lines += ["-- markers --"] + describe_markers(mk)
@@ -79,11 +77,9 @@ def inspect_cmd(file, exclude, include):
     Example:
         mocapskel inspect take.c3d
     """
-    p = Path(file)
-    if not p.exists():
-        raise InputError("no such file — check the path", file)
-    if p.is_dir():
-        raise InputError("is a folder, not a file", file)
+    from ..io.paths import require_regular_file
+
+    p = require_regular_file(file, "a .c3d, .trc, .npz or .bvh file")
     suf = p.suffix.lower()
     if suf == ".npz":
         lines = describe_artifact(artifacts.load(p))

@@ -2,8 +2,9 @@
 
 Every error ends in one line ``mocapskel: error: …`` on stderr and a documented
 exit code: 2 bad usage, 3 unreadable or invalid input, 4 the data cannot
-support a skeleton, 1 anything unexpected, 130 interrupted. ``-v`` shows
-tracebacks.
+support a skeleton, 1 anything unexpected, 130 interrupted (SIGINT), 143
+terminated (SIGTERM). ``-v`` shows tracebacks. Signals are handled from the
+command's first instruction (see :mod:`mocapskel._entry`).
 """
 from __future__ import annotations
 
@@ -77,6 +78,13 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated()
 
 
+def _on_sigint(signum, frame) -> None:
+    # not KeyboardInterrupt itself: CPython 3.11 kills itself with SIGINT at exit (exit status -2, not 130)
+    # when a KeyboardInterrupt went through exec() of a string on its way (a dataclass being created by a
+    # lazy import, say), whatever sys.exit said
+    raise Interrupted()
+
+
 class MocapskelGroup(click.Group):
     """A click group whose ``main`` turns every error into one line and an exit code.
 
@@ -90,11 +98,17 @@ class MocapskelGroup(click.Group):
             raise Interrupted() from None
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):  # noqa: D102
-        _register()
-        args = list(sys.argv[1:] if args is None else args)
         main_thread = threading.current_thread() is threading.main_thread()
-        old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+        old: dict[int, object] = {}
+        args = list(sys.argv[1:] if args is None else args)
         try:
+            if main_thread:  # from here on a signal cleans up (temporary files) and ends in 130 / 143
+                for sig, handler in ((signal.SIGTERM, _on_sigterm), (signal.SIGINT, _on_sigint)):
+                    current = signal.getsignal(sig)
+                    if current is not signal.SIG_IGN:
+                        old[sig] = current
+                        signal.signal(sig, handler)
+            _register()
             super().main(args=args, prog_name=prog_name or "mocapskel", standalone_mode=False, **extra)
         except click.exceptions.Exit as e:
             sys.exit(e.exit_code)
@@ -124,12 +138,15 @@ class MocapskelGroup(click.Group):
                 traceback.print_exc()
             _fail(f"unexpected {type(e).__name__}: {e} — run with -v for details and report it", 1)
         finally:
-            if main_thread:
-                signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
+            for sig, handler in old.items():  # (the console entry's handlers: a signal now exits at once)
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         sys.exit(0)
 
 
 def _fail(message: str, code: int) -> None:
+    if threading.current_thread() is threading.main_thread():  # a second signal must not cut the message short
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     click.echo(f"mocapskel: error: {_one_line(message)}", err=True)
     sys.exit(code)
 

@@ -60,6 +60,19 @@ def bvh_options(f):
     return f
 
 
+def naming_options(f):
+    """--names and --rest (the BVH's joint names and rest pose)."""
+    f = click.option(
+        "--rest", type=click.Choice(["frame", "tpose", "apose"]), default="frame", show_default=True,
+        help="Rest pose: the rest frame's pose, or for a person a T-pose or A-pose (joint positions unchanged).",
+    )(f)
+    f = click.option(
+        "--names", type=click.Choice(["auto", "humanoid", "segments"]), default="auto", show_default=True,
+        help="Joint names: humanoid (Hips, Spine, LeftUpLeg ...) when the skeleton is recognised as a person (auto), or the segment names.",
+    )(f)
+    return f
+
+
 def common(f):
     """Logging set-up for every command (pops -v/-q from the kwargs)."""
 

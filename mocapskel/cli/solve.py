@@ -11,7 +11,7 @@ from ..io.bvh import write_bvh
 from ..io.skeleton import read_skeleton
 from .fit import raise_if_strict, write_markers_out, write_report
 from .main import cli, say_warnings
-from .options import bvh_options, check_output, common, make_read, read_options, strict_option
+from .options import bvh_options, check_output, common, make_read, naming_options, read_options, strict_option
 
 log = logging.getLogger("mocapskel")
 
@@ -21,12 +21,13 @@ log = logging.getLogger("mocapskel")
 @click.option("--skeleton", "skeleton_path", required=True, type=click.Path(), help="Subject skeleton (.skel) from 'fit --skeleton-out'.")
 @click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
 @bvh_options
+@naming_options
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write a JSON report here.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Write the markers plus virtual joint markers (.c3d or .trc).")
 @strict_option
 @read_options
 @common
-def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out, strict, exclude, include):
+def solve_cmd(input, skeleton_path, output, up, units, names, rest, report_path, markers_out, strict, exclude, include):
     """Solve another take of a subject by IK alone, with the skeleton fitted on its calibration take.
 
     Markers are matched by label; missing ones are tolerated, unknown ones ignored
@@ -43,7 +44,7 @@ def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out,
     if markers_out:
         check_output(markers_out, input, suffixes=(".c3d", ".trc"))
     skel = read_skeleton(skeleton_path)
-    params = pipeline.make_params(up=up, units=units)
+    params = pipeline.make_params(up=up, units=units, names=names, rest=rest)
     res = pipeline.solve(input, skel, params, read=make_read(exclude, include))
     raise_if_strict(strict, res.report, input)
     b = res.bvh
@@ -52,6 +53,6 @@ def solve_cmd(input, skeleton_path, output, up, units, report_path, markers_out,
         if report_path:
             write_report(out.stage(report_path), res.report)
         if markers_out:
-            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include))
+            write_markers_out(out.stage(markers_out), res.motion, input, make_read(exclude, include), b)
     say_warnings(res.report.get("warnings", []))
     log.info("wrote %s: %d frames, marker rms %.2f mm", output, b.root_pos.shape[0], res.report["ik"]["marker_rms_mm"] or float("nan"))

@@ -7,11 +7,10 @@ import click
 
 from .. import artifacts, pipeline
 from ..io.atomic import AtomicOutputs
-from ..io.bvh import write_bvh
 from ..io.markers import write_markers
 from ..stages import export
 from .main import cli
-from .options import bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
+from .options import naming_options, bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
 
 log = logging.getLogger("mocapskel")
 
@@ -68,11 +67,12 @@ for _s in pipeline.STAGES:
 @click.argument("input", type=click.Path(dir_okay=True))
 @click.option("-o", "--output", "output", required=True, type=click.Path(), help="BVH file to write.")
 @bvh_options
+@naming_options
 @fit_options
 @read_options
 @cache_options
 @common
-def export_cmd(input, output, up, units, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+def export_cmd(input, output, up, units, names, rest, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
     """Write BVH from an ik artifact (or from any earlier input, running what is missing).
 
     \b
@@ -80,9 +80,15 @@ def export_cmd(input, output, up, units, segments, joint_method, rest_frame, exc
         mocapskel ik take.c3d -o take_ik.npz
         mocapskel export take_ik.npz -o take.bvh --up z --units mm
     """
-    check_output(output, input, suffixes=(".bvh",))
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units)
+    check_output(output, input, suffixes=(".bvh", ".glb", ".gltf"))
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+                                  names=names, rest=rest)
     run = pipeline.run_until(input, "ik", params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     b = export.run(run.artifact, params["export"])
-    write_bvh(output, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    from .fit import write_outputs
+
+    with AtomicOutputs() as out:
+        write_outputs(out, output, None, b)
+    for n in b.notes:
+        log.warning("warning: %s", n)
     log.info("wrote %s", output)

@@ -11,6 +11,28 @@ from pathlib import Path
 from typing import IO
 
 
+#: Bytes a file name may have on the usual file systems (ext4, XFS, APFS, NTFS in UTF-16 units).
+NAME_MAX = 255
+#: Bytes kept free beside the target's name in a temporary name: the dots, mkstemp's 8 random
+#: characters, ``.part`` and a suffix a writer may add (ezc3d appends ``.c3d``), with room to spare.
+_ROOM = 40
+
+
+def short_name(name: str, room: int = _ROOM) -> str:
+    """``name`` cut (at a character boundary) so that ``room`` more bytes still fit in a file name."""
+    raw = os.fsencode(name)
+    limit = NAME_MAX - room
+    if len(raw) <= limit:
+        return name
+    cut = raw[:limit]
+    for k in range(4):  # never split a UTF-8 character
+        try:
+            return cut[: len(cut) - k].decode("utf-8")
+        except UnicodeDecodeError:
+            continue
+    return os.fsdecode(cut)  # pragma: no cover - not UTF-8 at all
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -22,10 +44,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
 
     On any exception (KeyboardInterrupt included) the temporary file is removed
-    and ``path`` is left as it was.
+    and ``path`` is left as it was. The temporary name is ``.NAME.XXXXXXXX.part``
+    with NAME cut short enough that it (and a suffix a writer may add) fits
+    the file system's 255-byte name limit whatever the target's name.
     """
     target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent or ".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{short_name(target.name)}.", suffix=".part", dir=target.parent or ".")
     os.close(fd)
     try:
         yield tmp
@@ -76,7 +100,7 @@ class AtomicOutputs:
 
     def stage(self, path: str | os.PathLike) -> Path:
         target = Path(path)
-        folder = tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+        folder = tempfile.mkdtemp(prefix=f".{short_name(target.name)}.", suffix=".part", dir=target.parent)
         tmp = Path(folder) / target.name
         self._staged.append((tmp, target))
         return tmp

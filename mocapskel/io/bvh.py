@@ -9,7 +9,8 @@ What :func:`write_bvh` writes (DESIGN, "BVH the way importers want it"):
 - names that match ``[A-Za-z_][A-Za-z0-9_]*``, unique, none a prefix of
   another (:func:`sanitize_names` makes any list so);
 - every leaf with a non-zero End Site;
-- ``Frames:`` the number of frames, ``Frame Time:`` with 8 or more decimals;
+- ``Frames:`` the number of frames, ``Frame Time:`` with 10 significant digits
+  (at least 8 decimals) so that ``1 / Frame Time`` is the rate (:func:`format_frame_time`);
 - Euler angles continuous frame to frame (:func:`~mocapskel.solvers.rotations.unwrap_euler`);
 - no NaN: missing frames must be filled by the caller;
 - atomically: a temporary file beside the target, renamed when complete.
@@ -57,6 +58,7 @@ __all__ = [
     "sanitize_names",
     "depth_first_order",
     "bvh_text",
+    "format_frame_time",
     "write_bvh",
     "read_bvh",
     "parse_bvh",
@@ -329,9 +331,27 @@ def _header(skel: BvhSkeleton, dfs: np.ndarray, n_frames: int, frame_time: float
         open_.append(s)
     while open_:
         lines.append("\t" * depth[open_.pop()] + "}")
-    digits = max(8, 5 - math.floor(math.log10(frame_time)))
-    lines += ["MOTION", f"Frames: {n_frames}", f"Frame Time: {frame_time:.{digits}f}"]
+    lines += ["MOTION", f"Frames: {n_frames}", f"Frame Time: {format_frame_time(frame_time)}"]
     return "\n".join(lines) + "\n"
+
+
+#: Significant digits of ``Frame Time:``: 1/120 s is written 0.008333333333, which reads back
+#: as 120.0000000048 fps (relative error below 1e-10; 8 decimals, 0.00833333, read back as
+#: 120.000048 fps).
+FRAME_TIME_DIGITS = 10
+
+
+def format_frame_time(frame_time: float) -> str:
+    """``Frame Time:``'s value: :data:`FRAME_TIME_DIGITS` significant digits, at least 8 decimals.
+
+    ``1 / float(format_frame_time(1 / rate))`` is the rate within a relative
+    5e-10 (half a unit in the tenth digit), so an importer that takes the rate
+    as ``1 / Frame Time`` (Blender does) gets it to about 1e-10.
+    """
+    if not (math.isfinite(frame_time) and frame_time > 0):
+        raise ValueError(f"frame_time must be positive and finite, got {frame_time!r}")
+    decimals = max(8, FRAME_TIME_DIGITS - 1 - math.floor(math.log10(frame_time)))
+    return f"{frame_time:.{decimals}f}"
 
 
 def _transpose_blocks(flat: np.ndarray, take: np.ndarray | None = None, scale: np.ndarray | None = None) -> np.ndarray:
@@ -861,12 +881,22 @@ def read_bvh(path: str | os.PathLike) -> tuple[BvhSkeleton, np.ndarray, np.ndarr
         When the file cannot be read or is not a well-formed BVH file; the
         message names the file and the line.
     """
+    from .paths import require_regular_file
+
+    if os.path.exists(path):  # (a missing file: "cannot read" below)
+        require_regular_file(path, "a .bvh file")
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             text = f.read()
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror or e}", str(path)) from None
-    return parse_bvh(text, str(path))
+        raise InputError(f"cannot read ({e.strerror or e}) — check the file's permissions", str(path)) from None
+    try:
+        return parse_bvh(text, str(path))
+    except InputError as e:
+        msg = e.args[0]
+        if " — " in msg:
+            raise
+        raise InputError(f"{msg} — give a well-formed BVH file (export it again)", e.path) from None
 
 
 # --------------------------------------------------------------------------- kinematics

@@ -61,7 +61,7 @@ import numpy as np
 from ..artifacts import Markers
 from ..errors import InputError
 from .atomic import atomic_path
-from .markers import RawTake, unit_factor
+from .markers import RawTake, check_rate, unit_factor
 
 __all__ = ["C3DLayout", "read_layout", "read_c3d", "write_c3d"]
 
@@ -183,7 +183,7 @@ class C3DLayout:
     @property
     def point_rate(self) -> float:
         r = self.first_float("POINT", "RATE")
-        return r if r is not None and r > 0 else self.header_rate
+        return r if r is not None and r > 0 else self.header_rate  # (read_c3d refuses absurd rates first)
 
     @property
     def analog_words(self) -> int:
@@ -195,8 +195,9 @@ class C3DLayout:
             return 0
         arate = self.first_float("ANALOG", "RATE")
         prate = self.point_rate
-        if arate and prate and arate > 0 and prate > 0:
-            sub = int(round(arate / prate))
+        ratio = arate / prate if arate and prate and arate > 0 and prate > 0 else float("nan")
+        if np.isfinite(ratio) and ratio < 1e6:
+            sub = int(round(ratio))
         elif self.header_points or self.header_analog_words:
             sub = self.header_analog_words // max(used, 1)
         else:
@@ -522,6 +523,21 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy
     spath = str(path)
     lay = read_layout(path)
     warnings: list[str] = []
+
+    # ----- rate, checked before anything is sized by it
+    prate = lay.first_float("POINT", "RATE")
+    hrate = lay.header_rate
+    if prate is not None and (prate > 0 or not np.isfinite(prate)):
+        rate = check_rate(prate, spath, "POINT:RATE", _TO_USER)
+        if np.isfinite(hrate) and hrate > 0 and abs(hrate - prate) > 1e-4 * prate:
+            warnings.append(f"header rate {hrate:g} Hz disagrees with POINT:RATE {prate:g} Hz; using POINT:RATE")
+    elif hrate > 0 or not np.isfinite(hrate):
+        rate = check_rate(hrate, spath, "the header's frame rate", _TO_USER)
+        if prate is not None:
+            warnings.append(f"POINT:RATE is {prate:g}; using the header rate {hrate:g} Hz")
+    else:
+        raise InputError(f"no frame rate (POINT:RATE and the header rate are 0) — {_TO_USER}", spath)
+
     P = lay.n_points
     declared, source, saturated = lay.declared_frames()
     if P == 0:
@@ -534,6 +550,11 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy
     if saturated:  # 65535 in a 16-bit field: the data block says how many frames there are
         if in_file < _SATURATED:
             raise InputError(f"truncated C3D file ({in_file} of {declared} frames present) — {_TO_USER}", spath)
+        if not lay.ends_on_frame():  # the count cannot say how many frames there were: a cut last frame shows the cut
+            raise InputError(
+                f"truncated C3D file (its data ends inside frame {in_file + 1}; the 16-bit frame count is saturated,"
+                f" so the file cannot say how many frames it had) — {_TO_USER}", spath
+            )
         target = in_file
     elif in_file < declared:
         if not lay.ends_on_frame():
@@ -543,20 +564,6 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy
         target = in_file  # the file ends cleanly after its last frame: the frame count lies
     else:
         target = declared
-
-    # ----- rate
-    prate = lay.first_float("POINT", "RATE")
-    hrate = lay.header_rate
-    if prate is not None and prate > 0:
-        rate = prate
-        if hrate > 0 and abs(hrate - prate) > 1e-4 * prate:
-            warnings.append(f"header rate {hrate:g} Hz disagrees with POINT:RATE {prate:g} Hz; using POINT:RATE")
-    elif hrate > 0:
-        rate = hrate
-        if prate is not None:
-            warnings.append(f"POINT:RATE is {prate:g}; using the header rate {hrate:g} Hz")
-    else:
-        raise InputError(f"no frame rate (POINT:RATE and the header rate are 0) — {_TO_USER}", spath)
 
     # ----- points
     if engine == "auto":

@@ -27,6 +27,9 @@ __all__ = [
     "COMPUTED_DESCRIPTION_PATTERNS",
     "RawTake",
     "UNIT_TO_MM",
+    "MAX_RATE_HZ",
+    "MIN_RATE_HZ",
+    "check_rate",
     "computed_reason",
     "read_markers",
     "unit_factor",
@@ -37,6 +40,36 @@ __all__ = [
 #: Coordinates beyond this (mm, 10 km) cannot come from a capture volume: the take is refused.
 MAX_COORDINATE_MM = 1e7
 log = logging.getLogger(__name__)
+
+#: Frame rates mocapskel accepts (Hz). Optical capture runs at tens to a few thousand
+#: frames per second; a rate outside this range is a damaged or mislabelled header, and
+#: the stages size their windows (half a second ...) by it.
+MIN_RATE_HZ = 1.0
+MAX_RATE_HZ = 100_000.0
+
+
+def check_rate(rate: object, path: str, what: str = "frame rate", fix: str = "export the take again") -> float:
+    """``rate`` as a float when it is a number from :data:`MIN_RATE_HZ` to :data:`MAX_RATE_HZ`; else InputError.
+
+    Parameters
+    ----------
+    rate : object
+        The rate as read (any type: a damaged file may hold text, NaN, inf ...).
+    path : str
+        The file, for the message.
+    what : str
+        Where the rate comes from (``"POINT:RATE"``, ``"DataRate"`` ...).
+    fix : str
+        What the user should do.
+    """
+    ok = isinstance(rate, (int, float, np.integer, np.floating)) and not isinstance(rate, (bool, np.bool_))
+    r = float(rate) if ok else float("nan")
+    if not (MIN_RATE_HZ <= r <= MAX_RATE_HZ):  # NaN fails too
+        shown = f"{r:g} Hz" if ok else repr(rate)[:40]
+        raise InputError(
+            f"{what} {shown} is not a capture rate (from {MIN_RATE_HZ:g} Hz to {MAX_RATE_HZ:g} Hz) — {fix}", path
+        )
+    return r
 
 #: Labels of points that are computed by the capture software rather than seen
 #: by the cameras, as ``(regular expression, reason)``. A label (without its
@@ -313,6 +346,7 @@ def _finish(raw: RawTake, name: str, spath: str, *, exclude: tuple[str, ...], in
         raise InputError("no marker data (0 frames) — export the take again with its marker trajectories", spath)
     if M0 == 0:
         raise InputError("no marker data (0 markers) — export the take again with its marker trajectories", spath)
+    check_rate(raw.rate, spath)
     if pts.dtype != np.float64 or not pts.flags.writeable:
         pts = np.array(pts, dtype=np.float64)
     warnings = list(raw.warnings)

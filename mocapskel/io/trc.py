@@ -38,7 +38,7 @@ import numpy as np
 from ..artifacts import Markers
 from ..errors import InputError
 from .atomic import atomic_open
-from .markers import RawTake, unit_factor
+from .markers import RawTake, check_rate, unit_factor
 
 __all__ = ["read_trc", "write_trc"]
 
@@ -60,6 +60,18 @@ def _number(s: str | None) -> float | None:
     except ValueError:
         return None
     return v if np.isfinite(v) else None
+
+
+def _rate_field(s: str | None) -> float | None:
+    """A header rate: None when missing, not a number, zero or negative (the next source is used);
+    infinite and absurd values are returned, to be refused."""
+    if s is None:
+        return None
+    try:
+        v = float(s)
+    except ValueError:
+        return None
+    return v if v > 0 else None  # NaN and -inf are not > 0
 
 
 def _marker_names(line: bytes) -> list[str]:
@@ -202,6 +214,16 @@ def read_trc(path: str | os.PathLike) -> RawTake:
     start = sum(len(h) + 1 for h in head[:skip])
     warnings: list[str] = []
 
+    # ----- rate from the header, checked before anything else is read
+    rate: float | None = None
+    for key, name in (("datarate", "DataRate"), ("camerarate", "CameraRate")):
+        v = _rate_field(hv.get(key))
+        if v is not None:
+            rate = check_rate(v, spath, name, _TO_USER)
+            if key == "camerarate":
+                warnings.append(f"DataRate missing or invalid; using CameraRate {rate:g}")
+            break
+
     # ----- data rows (blank lines skipped)
     lines = raw[start:].split(b"\n") if start < len(raw) else []
     keep = [i for i, ln in enumerate(lines) if ln.strip()]
@@ -252,18 +274,13 @@ def read_trc(path: str | os.PathLike) -> RawTake:
         if jumps:
             warnings.append(f"frame numbers are not consecutive ({jumps} jumps); rows are read in order")
 
-    # ----- rate
-    rate = _number(hv.get("datarate"))
-    if rate is None or rate <= 0:
-        rate = _number(hv.get("camerarate"))
-        if rate is not None and rate > 0:
-            warnings.append(f"DataRate missing or invalid; using CameraRate {rate:g}")
-    if rate is None or rate <= 0:
+    # ----- rate (a header rate was checked before the data were parsed)
+    if rate is None:
         t = table[:, 1] if K >= 2 else np.zeros(0)
         dt = np.diff(t[np.isfinite(t)])
         dt = dt[dt > 0]
         if dt.size:
-            rate = float(1.0 / np.median(dt))
+            rate = check_rate(float(1.0 / np.median(dt)), spath, "the rate from the Time column", _TO_USER)
             warnings.append(f"DataRate missing or invalid; {rate:.6g} Hz from the Time column")
         else:
             raise InputError(f"no frame rate (DataRate is missing and there is no Time column) — {_TO_USER}", spath)

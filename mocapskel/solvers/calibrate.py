@@ -225,6 +225,8 @@ def refine_skeleton(
     tol: float = 1e-6,
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
+    joint_prior: float = 0.0,
+    prior_joints: set | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -237,6 +239,13 @@ def refine_skeleton(
         along that axis (relative to their parent's origin, ``a . d_c``) is held where it starts,
         by a stiff penalty — hinges, whose centre the markers hardly fix along their axis, placed
         there by the joints stage. The penalty weighs as much as all the markers together per mm.
+    joint_prior : weight (per frame, mm^-2 per mm^2) of a prior that holds every joint where it
+        starts relative to the marker centroid of each of its two segments. Where the markers
+        fix a joint, their cost rises with every frame and swamps the prior; along a direction
+        they hardly fix (a hinge's axis, the twist of a two-marker segment, a joint the take
+        barely moves) the prior decides, so the joint stays near its markers instead of sliding
+        away at no cost. 0: no prior.
+    prior_joints : the child segments whose joints the prior holds (None: all).
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -254,9 +263,16 @@ def refine_skeleton(
             if parent[int(c)] >= 0]
     d0 = d.copy()
     k_hold = float(max(pr.w.sum(), 1.0))  # mm^-2: a 1 mm move along a held axis costs as much as 1 mm on every marker
+    A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    g0 = _pack(pr, d, l)
+    u0 = A @ g0 if A.shape[0] else np.zeros(0)
 
     def total(p_, R_, d_, l_) -> float:
-        return pr.cost(p_, R_, d_, l_) + k_hold * sum(float(a @ (d_[c] - d0[c])) ** 2 for c, a in held)
+        c = pr.cost(p_, R_, d_, l_) + k_hold * sum(float(a @ (d_[c] - d0[c])) ** 2 for c, a in held)
+        if k_prior > 0 and A.shape[0]:
+            r = A @ _pack(pr, d_, l_) - u0
+            c += k_prior * float(r @ r)
+        return c
 
     c0 = cost = total(p, R, d, l)
     lam = 1e-4
@@ -298,6 +314,9 @@ def refine_skeleton(
                 i = pr.gi[c]
                 Hgg[i : i + 3, i : i + 3] += k_hold * np.outer(a, a)
                 bg[i : i + 3] += k_hold * a * float(a @ (d[c] - d0[c]))
+            if k_prior > 0 and A.shape[0]:
+                Hgg += k_prior * (A.T @ A)
+                bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
             Hgg[fix_g, :] = 0.0
             Hgg[:, fix_g] = 0.0
             Hgg[fix_g, fix_g] = 1.0
@@ -373,6 +392,42 @@ def refine_skeleton(
         origin=new_origin, marker_local=l, rot=R, root_pos=p,
         rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it,
     )
+
+
+def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
+    """The constant unknowns (bone offsets, then used markers' offsets) as one vector."""
+    g = np.zeros(pr.ng)
+    for c in pr.kids:
+        g[pr.gi[c] : pr.gi[c] + 3] = d[c]
+    for m in pr.used:
+        g[pr.gl[int(m)] : pr.gl[int(m)] + 3] = l[m]
+    return g
+
+
+def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None) -> np.ndarray:
+    """(3K, ng) linear map from the constant unknowns to every joint's position relative to the
+    marker centroid of each of its two segments (in that segment's frame).
+
+    In the parent ``p``'s frame the joint of child ``c`` sits at ``d_c`` from ``p``'s origin,
+    so ``d_c - mean(l_m, m in p)``; in ``c``'s frame it is ``c``'s origin, ``-mean(l_m, m in c)``.
+    """
+    rows = []
+    for c in pr.kids:
+        if only is not None and c not in only:
+            continue
+        p = int(parent[c])
+        for s, with_d in ((p, True), (c, False)):
+            ms = [int(m) for m in pr.used if pr.seg[m] == s]
+            if not ms:
+                continue
+            for k in range(3):
+                row = np.zeros(pr.ng)
+                if with_d:
+                    row[pr.gi[c] + k] = 1.0
+                for m in ms:
+                    row[pr.gl[m] + k] -= 1.0 / len(ms)
+                rows.append(row)
+    return np.array(rows).reshape(-1, pr.ng)
 
 
 def track(

@@ -707,6 +707,22 @@ def jmv_joint_long(
 # --------------------------------------------------------------------------- topology
 
 
+def distance_penalty(info: dict, k: float, fallback: float = 0.01) -> float:
+    """Kirk's distance penalty alpha scaled to a take: ``k`` skin variances per median marker distance.
+
+    info : the segment stage's info, with ``skin_level_mm`` (the take's own level of skin motion
+    and noise, a distance std) and ``size_mm`` (the median distance between markers). A joint as
+    far from its markers as markers are from each other then costs ``k`` times the variance that
+    skin motion alone gives; where the motion fixes the joint, its cost outweighs that, and where
+    it does not (a hinge's axis, a joint the take barely moves) the joint stays near its markers
+    instead of running off along the free direction. ``fallback`` when the info has no level.
+    """
+    level, size = info.get("skin_level_mm"), info.get("size_mm")
+    if not level or not size or not (level > 0 and size > 0):
+        return fallback
+    return float(k * level**2 / size)
+
+
 def pair_cost(
     markers_a: ArrayLike,
     markers_b: ArrayLike,
@@ -769,4 +785,11 @@ def pair_cost(
     if tried and np.isfinite(best):
         return float(best)
     fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-8)
-    return float(fit.cost)
+    if not np.isfinite(fit.cost):
+        return float(fit.cost)
+    # the joint is free in every frame (3 unknowns a frame): of n markers' distances only n - 3
+    # are checked, so the mean variance is scaled to what n - 3 redundant distances leave, as an
+    # unbiased variance is — otherwise two groups of one or two markers join anything cheaply
+    n = a.shape[1] + b.shape[1]
+    var = joint_cost(fit.centre, np.concatenate([a, b], axis=1), alpha=0.0)
+    return float(var * n / max(n - 3, 0.5) + (fit.cost - var))

@@ -3,8 +3,18 @@
 Axes: with ``up="z"`` BVH axes are the lab's; with ``up="y"`` lab (x, y, z)
 maps to BVH (x, z, -y), so a Y-up importer such as Blender's puts the subject
 back in its lab frame. Units: mm, cm or m. Rest pose (all channels zero) is the
-subject's shape at the skeleton's rest frame; the root's OFFSET is zero and its
-position channels are absolute, which every BVH reader agrees on.
+subject's shape at the skeleton's rest frame (``rest="frame"``), or for a
+person a T-pose or an A-pose (``rest="tpose"|"apose"``: every bone along a
+standard direction, the motion re-expressed so that every joint's world
+position is unchanged); the root's OFFSET is zero and its position channels
+are absolute, which every BVH reader agrees on.
+
+Names (:mod:`mocapskel.naming`): with ``names="auto"`` (the default) a
+skeleton recognised as a person gets the humanoid names and is rooted at the
+pelvis (``Hips``, between the hip joints, so that the bone to the spine is
+visible); ``names="segments"`` keeps the segment names and the fitted root.
+Re-rooting changes no joint's world position: every BVH joint is a joint of
+the fitted tree (the root: a point fixed in the pelvis).
 """
 from __future__ import annotations
 
@@ -14,11 +24,14 @@ import numpy as np
 
 from ..artifacts import Motion
 from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..naming import SCHEMES, Naming, name_skeleton
 
 VERSION = 3
 
 UPS = ("y", "z")
 UNITS = ("cm", "mm", "m")
+RESTS = ("frame", "tpose", "apose")
+NAMES = SCHEMES
 
 
 @dataclass(frozen=True)
@@ -29,6 +42,8 @@ class Params:
     """Rotation channel order of every joint; "auto": ZXY unless some joint comes within
     30 degrees of gimbal lock in it, then the order that keeps joints farthest from lock
     (:func:`~mocapskel.io.bvh.choose_rotation_order`)."""
+    names: str = "auto"
+    rest: str = "frame"
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,12 +51,148 @@ class BvhMotion:
     """Everything a BVH file holds, in BVH axes and units.
 
     root_pos : (F, 3); local_rot : (F, S, 3, 3) rotation of each joint relative to its parent.
+    segment  : (S,) the skeleton segment of each BVH joint.
+    naming   : how the joints were named (and why).
+    rest     : the rest pose written ("frame", "tpose" or "apose").
+    notes    : what the user should know (a rest pose asked for but not possible ...).
     """
 
     skeleton: BvhSkeleton
     root_pos: np.ndarray
     local_rot: np.ndarray
     frame_time: float
+    segment: np.ndarray | None = None
+    naming: Naming | None = None
+    rest: str = "frame"
+    notes: tuple[str, ...] = ()
+    up: str = "y"
+    units: str = "cm"
+
+    def report(self) -> dict:
+        """The report's ``export`` entry."""
+        out = {"names": self.naming.report() if self.naming else None, "rest": self.rest,
+               "root": self.skeleton.names[0], "notes": list(self.notes)}
+        if self.naming is not None and self.segment is not None:
+            out["joints"] = {self.skeleton.names[i]: int(s) for i, s in enumerate(self.segment.tolist())}
+        return out
+
+
+def tree_from(parent: np.ndarray, root: int) -> np.ndarray:
+    """The parent array of the same tree rooted at ``root``."""
+    S = len(parent)
+    nb: list[list[int]] = [[] for _ in range(S)]
+    for s, p in enumerate(parent.tolist()):
+        if p >= 0:
+            nb[s].append(p)
+            nb[p].append(s)
+    new = np.full(S, -2, dtype=np.int64)
+    new[root] = -1
+    stack = [root]
+    while stack:
+        s = stack.pop()
+        for n in sorted(nb[s]):
+            if new[n] == -2:
+                new[n] = s
+                stack.append(n)
+    return new
+
+
+def joint_points_rest(skel, new_parent: np.ndarray, naming: Naming) -> np.ndarray:
+    """(S, 3) rest position (lab, mm) of the BVH joint of each segment.
+
+    A segment's joint with its new parent is the joint of the fitted tree
+    between them; the root's is its origin, or for a person the midpoint of
+    the two hip joints.
+    """
+    old = np.asarray(skel.parent)
+    origin = np.asarray(skel.origin, dtype=np.float64)
+    r = origin.copy()
+    for s, q in enumerate(new_parent.tolist()):
+        if q >= 0 and old[s] != q:  # the edge is reversed: the joint is the old child's origin
+            r[s] = origin[q]
+    root = int(np.flatnonzero(new_parent < 0)[0])
+    if naming.hips_children:
+        r[root] = np.mean([origin[c] if old[c] == root else origin[root] for c in naming.hips_children], axis=0)
+    return r
+
+
+def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking direction ``a`` to direction ``b``."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-12:  # opposite: half a turn about any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+def _frame_of(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
+    """Orthonormal columns (primary, secondary made perpendicular, their cross product)."""
+    e1 = primary / np.linalg.norm(primary)
+    e2 = secondary - np.dot(secondary, e1) * e1
+    e2 /= np.linalg.norm(e2)
+    return np.stack([e1, e2, np.cross(e1, e2)], axis=1)
+
+
+def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, rest: str) -> np.ndarray:
+    """(S, 3, 3) rotation of each segment from the fitted rest pose to a T-pose or A-pose (lab axes, Z up).
+
+    Every bone (a joint to the mean of its children's joints, a leaf to its
+    End Site) is turned onto its standard direction by the smallest rotation:
+    the trunk, neck and head up, the legs down, the feet and toes forward, the
+    arms sideways (A-pose: 45 degrees down, the clavicles sideways). The pelvis
+    is turned so that the line between the hips lies along lab +X (the
+    subject's left) and its bone (to the spine) points up as far as it is
+    perpendicular to that line, so that the subject faces lab -Y (BVH +Z with
+    ``--up y``, the usual facing of a BVH character; Blender's front view
+    with ``--up z``); the
+    segment that carries the arms likewise with the line between the shoulders.
+    """
+    S = len(new_parent)
+    names = naming.names
+    up = np.array([0.0, 0.0, 1.0])
+    hl, hr = (r[naming.hips_children[0]], r[naming.hips_children[1]])  # left hip, right hip
+    left = np.array([1.0, 0.0, 0.0])  # the subject faces lab -Y: BVH +Z with --up y, Blender's front with --up z
+    forward = np.cross(left, up)
+    down45 = np.sqrt(0.5)
+    kids: list[list[int]] = [[] for _ in range(S)]
+    for s, q in enumerate(new_parent.tolist()):
+        if q >= 0:
+            kids[q].append(s)
+    Q = np.empty((S, 3, 3))
+    for s in range(S):
+        if kids[s]:
+            d = np.mean(r[kids[s]], axis=0) - r[s]
+        else:
+            d = np.asarray(skel.end_site[s], dtype=np.float64)
+        n = names[s]
+        side = 1.0 if n.startswith("Left") else -1.0 if n.startswith("Right") else 0.0
+        base = n[4:] if n.startswith("Left") else n[5:] if n.startswith("Right") else n
+        if n == "Hips":
+            spine = [k for k in kids[s] if k not in naming.hips_children]
+            d_up = (r[spine].mean(axis=0) if spine else r[s] + up) - r[s]
+            Q[s] = _frame_of(left, up) @ _frame_of(hl - hr, d_up).T
+            continue
+        arms = [k for k in kids[s] if names[k].endswith(("Shoulder", "Arm")) and not names[k].endswith("ForeArm")]
+        if side == 0.0 and len(arms) == 2 and np.linalg.norm(d) > 1e-9:
+            # the segment carrying the arms: its bone up and the line between the shoulders sideways
+            la, ra = sorted(arms, key=lambda k: not names[k].startswith("Left"))
+            Q[s] = _frame_of(up, left) @ _frame_of(d, r[la] - r[ra]).T
+            continue
+        if base in ("UpLeg", "Leg"):
+            t = -up
+        elif base in ("Foot", "ToeBase"):
+            t = forward
+        elif base in ("Shoulder", "Arm", "ForeArm", "Hand"):
+            t = side * left if (rest == "tpose" or base == "Shoulder") else side * down45 * left - down45 * up
+        else:
+            t = up
+        Q[s] = _rot_between(d, t) if np.linalg.norm(d) > 1e-9 else np.eye(3)
+    return Q
 
 
 def run(motion: Motion, params: Params = Params()) -> BvhMotion:
@@ -49,21 +200,90 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         raise ValueError(f"up must be one of {UPS}")
     if params.units not in UNITS:
         raise ValueError(f"units must be one of {UNITS}")
+    if params.names not in NAMES:
+        raise ValueError(f"names must be one of {NAMES}")
+    if params.rest not in RESTS:
+        raise ValueError(f"rest must be one of {RESTS}")
     sk = motion.skeleton
-    perm = depth_first_order(sk.parent)
+    naming = name_skeleton(sk, motion, params.names)
+    notes: list[str] = []
+    if params.names == "humanoid" and not naming.humanoid:
+        notes.append(f"--names humanoid: {naming.note}; generic names kept")
+    rest = params.rest
+    if rest != "frame" and not naming.humanoid:
+        why = ("the humanoid names (not --names segments)" if params.names == "segments"
+               else "a skeleton recognised as a person")
+        notes.append(f"--rest {rest} needs {why}; the rest pose is the rest frame's")
+        rest = "frame"
+    old_parent = np.asarray(sk.parent)
+    parent = tree_from(old_parent, naming.root) if naming.root != int(np.flatnonzero(old_parent < 0)[0]) else old_parent
+    r = joint_points_rest(sk, parent, naming) if naming.humanoid else np.asarray(sk.origin, dtype=np.float64)
+    rot = motion.rot
+    root = naming.root
+    # the root joint's world position: a point fixed in the root segment
+    from ..kinematics import segment_origins
+
+    if np.array_equal(parent, old_parent) and np.allclose(r[root], sk.origin[root]):
+        root_world = motion.root_pos
+    else:
+        o = segment_origins(motion)[:, root]
+        root_world = o + np.einsum("fij,j->fi", rot[:, root], r[root] - sk.origin[root])
+    offset_lab = r.copy()
+    has = parent >= 0
+    offset_lab[has] -= r[parent[has]]
+    end_lab = np.asarray(sk.end_site, dtype=np.float64).copy()
+    leaf = np.ones(len(parent), dtype=bool)
+    leaf[parent[has]] = False
+    was_leaf = np.ones(len(parent), dtype=bool)
+    was_leaf[old_parent[old_parent >= 0]] = False
+    end_lab[leaf & ~was_leaf] = 0.0  # a new leaf (re-rooting): the writer's default End Site
+    if rest != "frame":
+        Q = rest_rotations(sk, parent, r, naming, rest)
+        offset_lab[has] = np.einsum("sij,sj->si", Q[parent[has]], offset_lab[has])
+        end_lab = np.einsum("sij,sj->si", Q, end_lab)
+        rot = np.einsum("fsij,skj->fsik", rot, Q)  # rot @ Q^T: the new rest is Q times the old
+    perm = depth_first_order(parent)
     inv = np.empty_like(perm)
     inv[perm] = np.arange(perm.size)
-    par = np.where(sk.parent[perm] >= 0, inv[np.maximum(sk.parent[perm], 0)], -1)
-    offset = lab_to_bvh(sk.offset[perm], params.up, params.units)
+    par = np.where(parent[perm] >= 0, inv[np.maximum(parent[perm], 0)], -1)
+    offset = lab_to_bvh(offset_lab[perm], params.up, params.units)
     offset[par < 0] = 0.0
-    local = global_to_local_rot(par, lab_rot_to_bvh(motion.rot, params.up, joints=perm))
+    local = global_to_local_rot(par, lab_rot_to_bvh(rot, params.up, joints=perm))
     bskel = BvhSkeleton(
-        names=tuple(sk.names[i] for i in perm),
+        names=tuple(naming.names[i] for i in perm),
         parent=par,
         offset=offset,
-        end_site=lab_to_bvh(sk.end_site[perm], params.up, params.units),
+        end_site=lab_to_bvh(end_lab[perm], params.up, params.units),
         order=choose_rotation_order(local) if params.order == "auto" else params.order,
     )
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
-    return BvhMotion(bskel, lab_to_bvh(motion.root_pos, params.up, params.units), local, 1.0 / rate)
+    return BvhMotion(bskel, lab_to_bvh(root_world, params.up, params.units), local, 1.0 / rate,
+                     segment=perm, naming=naming, rest=rest, notes=tuple(notes),
+                     up=params.up, units=params.units)
 
+
+def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
+    """(F, S, 3) where each BVH joint of ``bvh`` should be (lab, mm), from ``motion`` alone.
+
+    A joint is the fitted tree's joint between its segment and its parent's
+    (:func:`mocapskel.kinematics.segment_origins` of the child of that edge);
+    a humanoid root is the midpoint of the two hip joints. Independent of the
+    BVH's offsets and rotations: what a reader of the file should find.
+    """
+    from ..kinematics import segment_origins
+
+    O = segment_origins(motion)
+    old = np.asarray(motion.skeleton.parent)
+    seg = bvh.segment
+    out = np.empty((O.shape[0], len(seg), 3))
+    for i, s in enumerate(seg.tolist()):
+        p = int(bvh.skeleton.parent[i])
+        if p >= 0:
+            q = int(seg[p])
+            out[:, i] = O[:, s] if old[s] == q else O[:, q]
+        elif bvh.naming is not None and bvh.naming.hips_children:
+            hips = [O[:, c] if old[c] == s else O[:, s] for c in bvh.naming.hips_children]
+            out[:, i] = 0.5 * (hips[0] + hips[1])
+        else:
+            out[:, i] = O[:, s]
+    return out

@@ -35,12 +35,12 @@ from ..artifacts import Joints, Topology
 from ..errors import DataError
 from ..parallel import run_blocks
 from ..solvers.hybrid import solve_tree
-from ..solvers.jmv import jmv_joint_long, joint_cost
+from ..solvers.jmv import distance_penalty, jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 6
+VERSION = 9
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -51,14 +51,23 @@ METHODS = ("auto", "jmv", "mtb", "sphere", "score")
 @dataclass(frozen=True)
 class Params:
     method: str = "auto"
-    alpha: float = 0.0
-    """Kirk's distance penalty in the final fit (0: dropped, as the paper's discussion advises)."""
+    alpha: float | None = None
+    """Kirk's distance penalty in the final fit; None: scaled to the take (``alpha_k`` skin
+    variances per median marker distance, see :func:`~mocapskel.solvers.jmv.distance_penalty`).
+    Kirk drops it in the final pass but notes it helps where the motion does not exercise
+    every degree of freedom — on real takes, most joints: a hinge's centre, or a joint
+    between two-marker segments, otherwise slides off along what the markers do not fix."""
+    alpha_k: float = 2.0
     min_turn_deg: float = 5.0
     """Joints whose segments turn less than this relative to each other (95th
     percentile over frames) are reported as poorly determined."""
     hinge_ratio: float = 0.4
     """SCoRE's smallest-to-next singular value ratio below which a joint is hinge-like:
     its centre is then fixed along the axis by the plane of the neighbouring joints..."""
+    hinge_plane: bool = True
+    """Move a hinge's centre along its axis into the plane of its neighbours along the chain
+    that SCoRE fixed in full (a knee between a hip and an ankle that the motion fixes);
+    with no such neighbour the centre stays on the axis nearest the two segments' markers."""
     hinge_min_sigma_mm: float = 0.1
     """...and only when SCoRE's standard error along the axis exceeds this (noise-free
     data fix even a near-hinge exactly)."""
@@ -83,6 +92,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     E = edges.shape[0]
     F = pts.shape[0]
     per_joint: list[dict] = [{} for _ in range(E)]
+    alpha = params.alpha if params.alpha is not None else distance_penalty(seg.info, params.alpha_k, 0.0)
     diag = spread_frames(F, params.diag_frames)
     warnings: list[str] = []
     centres = np.full((F, E, 3), np.nan)
@@ -132,34 +142,44 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     centres[:, e], methods[e], done[e] = c, "sphere", True
                     per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
                     continue
-            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
+            if max(na, nb) >= 3 and min(na, nb) == 2 and np.isfinite(fit.centre).any():
+                # the two markers, in the frame of the other segment, move on spheres about the joint:
+                # Knight's fit of both at once, kept where its joint cost (with the distance penalty) is lower
+                c, side = sphere_centre(groups[a], groups[b])
+                both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
+                if side is not None and joint_cost(c[diag], both, alpha=alpha) < joint_cost(fit.centre[diag], both, alpha=alpha):
+                    centres[:, e], methods[e] = c, "sphere"
+                    per_joint[e]["why"] = (f"segments of {na} and {nb} markers: the two markers on spheres about the joint in"
+                                           " the other segment's frame (MGDK); lower joint cost than JMV")
+                    per_joint[e].pop("note", None)
             # Hang's framework may reach a lower joint cost (exact data): then it wins
             if tree is None:
-                tree = solve_tree(groups, edges, alpha=params.alpha)
+                tree = solve_tree(groups, edges, alpha=alpha)
             if np.isfinite(tree.centres[:, e]).any():
                 alt_from_tree.append(e)
             both = np.concatenate([groups[a], groups[b]], axis=1)
             if np.isfinite(tree.centres[:, e]).any() and np.isfinite(fit.centre).any():
-                q_tree = joint_cost(tree.centres[:, e], both, alpha=0.0)
-                q_jmv = joint_cost(fit.centre, both, alpha=0.0)
+                q_tree = joint_cost(tree.centres[:, e], both, alpha=alpha)
+                q_jmv = joint_cost(fit.centre, both, alpha=alpha)
                 if q_tree < q_jmv:
                     centres[:, e], methods[e] = tree.centres[:, e], tree.method[e]
                     per_joint[e]["why"] = _why(tree.method[e], tree.category, edges[e]) + "; lower joint cost than JMV"
                     per_joint[e].pop("note", None)
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
-            fit = jmv_joint_long(groups[a], groups[b], alpha=params.alpha, max_frames=params.jmv_frames)
+            fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
             centres[:, e] = fit.centre
             methods[e] = "jmv"
             if not fit.ok:
                 per_joint[e]["note"] = fit.reason
         done[:] = True
     if not done.all():  # the hybrid framework (MTB, propagation, JMV) for the rest
-        tree = solve_tree(groups, edges, alpha=params.alpha)
+        tree = solve_tree(groups, edges, alpha=alpha)
         for e in np.flatnonzero(~done):
             centres[:, e] = tree.centres[:, e]
             methods[e] = tree.method[e]
@@ -168,8 +188,11 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 per_joint[e]["note"] = tree.reason[e]
             if params.method == "score":
                 per_joint[e]["note"] = f"SCoRE needs 3+ markers on both segments; {tree.method[e]} used"
-    for e, (fit, R1) in hinges.items():
-        centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e)
+    for e, (fit, R1) in (hinges.items() if params.hinge_plane else ()):
+        # only neighbours that SCoRE fixed in full: a hinge is as loose along its own axis, and a
+        # joint of a one- or two-marker segment is held only by the distance prior
+        loose = {k for k in range(E) if k in hinges or methods[k] != "score"}
+        centres[:, e], shift = place_on_hinge(fit, R1, centres, edges, e, skip=loose)
         if shift is not None:
             per_joint[e]["why"] += "; moved along the axis into the plane of the neighbouring joints"
     if params.method == "sphere":
@@ -235,19 +258,29 @@ def _why(method: str, category: tuple[str, ...], edge: np.ndarray) -> str:
     }.get(method, cats)
 
 
-def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int) -> tuple[np.ndarray, float | None]:
-    """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints.
+def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int,
+                   skip: set | frozenset = frozenset()) -> tuple[np.ndarray, float | None]:
+    """Move a hinge centre along its axis into the plane (normal to the axis) of the neighbouring joints along the chain.
 
     A hinge's centre is undetermined along its axis. Anatomically (a knee
     between hip and ankle, an elbow between shoulder and wrist) the centre lies
     where the axis meets the plane of the adjacent joint centres; those are
     fixed in one of the two segments, so their distance along the axis is
     constant. fit : a hinge ScoreFit; R1 : (F, 3, 3) rotations of the fit's
-    first segment; centres : (F, E, 3) all joint centres so far.
+    first segment; centres : (F, E, 3) all joint centres so far; ``skip``: joints
+    not to use (the other hinges: on real takes a walk makes hip, knee and ankle
+    all hinge-like, and each would carry the others' freedom along their axes).
     Returns (centre (F, 3), shift or None).
     """
     a, b = edges[e]
-    nb = [k for k in range(edges.shape[0]) if k != e and (a in edges[k] or b in edges[k])]
+    # the neighbours along a chain: the other joint of a segment with two joints (a thigh's hip for
+    # its knee); a segment with more (a pelvis: both hips and the lumbar joint) says nothing about
+    # where along the axis this one sits, a leaf has no other joint
+    nb = []
+    for s in (a, b):
+        ks = [k for k in range(edges.shape[0]) if k != e and s in edges[k]]
+        if len(ks) == 1 and ks[0] not in skip:  # a hinge neighbour is as loose along its own axis
+            nb.extend(ks)
     base = centres[:, e].copy()
     if not nb:
         return base, None

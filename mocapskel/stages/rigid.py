@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 4
+VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,21 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
+    joint_prior: float = 0.01
+    """Weight (per frame) of the prior that holds each joint where the joints stage put it
+    relative to the markers of its two segments (see
+    :func:`~mocapskel.solvers.calibrate.refine_skeleton`), used when the refinement without
+    it leaves a joint implausibly far from its segments' markers (it slid along a direction
+    the markers do not fix). Without need it stays off: on a skeleton of two-marker segments
+    the joints stage's centres are rough, and only the whole skeleton's rigidity, unheld,
+    puts them right."""
+    far: float = 0.5
+    """A joint is implausible when it sits farther than this fraction of the subject's marker
+    extent from the nearest marker of one of its two segments."""
+    slide: float = 0.1
+    """...or when the refinement moved it, relative to the markers of one of its segments, by
+    more than this fraction of that extent from where the joints stage put it (a slide along
+    a direction the markers do not fix; the refinement corrects rough starts by less)."""
     hold_hinges: bool = True
     """Joints the joints stage placed as hinges keep their position along the hinge axis
     in the refinement (the markers hardly fix it; the joints stage put it in the plane
@@ -123,7 +138,11 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             if "refined" in one.info:
                 a = one.info["refined"]["marker_rms_mm_after"]
                 b = two.info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                win = two if b is not None and b < a else one
+                bad_one, bad_two = bool(far_joints(one, params.far)), two is None or bool(far_joints(two, params.far))
+                if bad_one != bad_two:  # never a lower residual bought with a joint off its markers
+                    win = two if bad_one else one
+                else:
+                    win = two if b is not None and b < a else one
                 info = dict(win.info)
                 info["refined"] = dict(info["refined"], start="framework" if win is two else "joints",
                                        marker_rms_mm_starts={"joints": a, "framework": b})
@@ -196,20 +215,93 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
 REFINE_FULL_SEGMENTS = 15
 
 
-def refine_frame_count(frames: int, n_segments: int) -> int:
+#: A short take gives the refinement at most one frame in this many (its frames are close and
+#: alike; a real take of a few seconds spent most of its fit here).
+REFINE_STRIDE = 4
+
+
+def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None) -> int:
     """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
-    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less).
+    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); and at most a quarter of a
+    take of ``take_frames`` (at least 100).
 
     An iteration costs about S^3 per frame (a segment's pose couples with every other's through
     the constant offsets): this keeps a skeleton of 27 segments (a marker set with many markers
     on joints, split into rigid groups) at the cost of one of 15.
     """
+    if take_frames is not None:
+        frames = min(frames, max(100, take_frames // REFINE_STRIDE))
     if n_segments <= REFINE_FULL_SEGMENTS:
         return frames
     return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
 
 
+def far_joints(skel: Skeleton, far: float) -> list[int]:
+    """Segments whose joint to their parent sits implausibly far from its markers, in the rest pose.
+
+    Far: farther than ``far`` times the subject's marker extent (the largest distance between two
+    markers at rest) from the nearest marker of the parent or of the child segment.
+    """
+    seg = skel.marker_segment
+    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
+    pos = np.full(skel.marker_local.shape, np.nan)
+    pos[ok] = skel.origin[seg[ok]] + skel.marker_local[ok]
+    P = pos[ok]
+    if len(P) < 2:
+        return []
+    ext = float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max())
+    out = []
+    for c in np.flatnonzero(skel.parent >= 0):
+        for s_ in (int(skel.parent[c]), int(c)):
+            m = pos[ok & (seg == s_)]
+            if len(m) and float(np.linalg.norm(m - skel.origin[c], axis=1).min()) > far * ext:
+                out.append(int(c))
+                break
+    return out
+
+
+def _extent(skel: Skeleton) -> float:
+    seg = skel.marker_segment
+    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
+    P = skel.origin[seg[ok]] + skel.marker_local[ok]
+    return float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max()) if len(P) > 1 else 0.0
+
+
+def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
+    """Segments whose joint to their parent moved, relative to the markers of the parent or of the child,
+    by more than ``slide`` times the subject's marker extent between two fits (rest-pose axes)."""
+    lim = slide * _extent(before)
+    out = []
+    for c in np.flatnonzero(before.parent >= 0):
+        p = int(before.parent[c])
+        for s_, own in ((p, False), (int(c), True)):
+            m = (before.marker_segment == s_) & np.isfinite(before.marker_local).all(1) & np.isfinite(after.marker_local).all(1)
+            if not m.any():
+                continue
+            # the joint relative to the segment's marker centroid: -mean(l) in the child, d_c - mean(l) in the parent
+            rel = [(sk.origin[c] - sk.origin[p] if not own else 0.0) - sk.marker_local[m].mean(0) for sk in (before, after)]
+            if float(np.linalg.norm(rel[1] - rel[0])) > lim:
+                out.append(int(c))
+                break
+    return out
+
+
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
+    """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
+    from its markers, or slid far from where the joints stage put it."""
+    out = refine_once(skel, params, centres, 0.0)
+    bad = sorted(set(far_joints(out, params.far)) | set(slid_joints(skel, out, params.slide))) if "refined" in out.info else []
+    if bad and params.joint_prior > 0:
+        held = refine_once(skel, params, centres, params.joint_prior, set(bad))
+        info = dict(held.info)
+        info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
+                               held_because=[skel.names[c] for c in bad])
+        out = replace(held, info=info)
+    return out
+
+
+def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float,
+                prior_joints: set | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
     See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
@@ -220,7 +312,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
 
     pts = skel.joints.topology.segments.markers.points
     vis = np.isfinite(pts).all(-1)
-    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names)), must=skel.rest_frame)
+    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0]), must=skel.rest_frame)
     if use.size < 10:
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))
@@ -229,7 +321,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
-                          hold_along=hold)
+                          hold_along=hold, joint_prior=prior, prior_joints=prior_joints)
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],

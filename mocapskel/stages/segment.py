@@ -20,13 +20,14 @@ from ..artifacts import Markers, Segments
 from ..errors import DataError
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 2
+VERSION = 3
 
 
 @dataclass(frozen=True)
 class Params:
     n_segments: int | None = None
-    """Number of segments; None: from the eigen-gap, split further until every group is rigid."""
+    """Number of segments (spectral clustering into that many); None: the rigid groups at the
+    take's own tolerance (average linkage), lone markers then given a place."""
     interval_s: float = 0.5
     """Sampling interval (Kirk: half a second)."""
     jitter_s: float = 0.1
@@ -40,13 +41,23 @@ class Params:
     """Width of the Gaussian that turns a distance std into an affinity; None:
     chosen from the data (the width, among a few fractions of the spread of the
     stds, that gives the clearest eigen-gap)."""
-    rigid_mm: float = 8.0
-    """Automatic count: a group in which half of the marker pairs vary in
-    distance more than this (std, mm) is split further; if fewer than 5 % of
-    all pairs vary more than this, the take is one rigid body."""
-    rigid_frac: float = 0.02
-    """...or more than this fraction of the median marker distance, if smaller
-    (so the test does not depend on the take's units or size)."""
+    rigid_k: float = 2.0
+    """Automatic count: markers whose distances vary (std) by at most this many times the
+    take's own skin-and-noise level on average are one rigid group. The level is
+    measured on the take: the median, over markers, of the std to the second most
+    rigid partner (a marker on a segment of three or more has two partners at the
+    level of its skin motion)."""
+    join_k: float = 2.0
+    """A marker left alone by the rigid groups may join a group, or take a partner from
+    one, within this many times the rigid tolerance (a marker on a joint axis stays
+    nearly rigid with both neighbours, and the group it was put in may need it less)."""
+    free_k: float = 2.5
+    """A marker still alone that varies against its nearest group by less than this many
+    times the rigid tolerance does not move on its own (skin motion): it joins that group."""
+    reach: float = 1.5
+    """A marker joins or pairs only with markers within this many times the median
+    extent of the rigid groups (markers far apart that move in step — an arm swinging
+    with the opposite leg — are not one body)."""
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
     seed: int = 0
@@ -130,6 +141,13 @@ def affinity(std: np.ndarray, sigma: float) -> np.ndarray:
     return W
 
 
+#: A marker whose distances to its partners vary by less than this fraction of the median
+#: marker distance is a point computed from a model, not a measured marker.
+COMPUTED_FRAC = 1e-4
+#: A marker's second partner varying more than this many times its first is across a joint
+#: (the marker sits on a two-marker segment): the first partner's std is its level.
+ACROSS_RATIO = 4.0
+
 SCALE_PERCENTILE = 25
 SIGMA_FRACTIONS = (0.06, 0.12, 0.25, 0.5, 1.0)
 
@@ -156,7 +174,7 @@ def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
     return int(M - np.count_nonzero(average_linkage_heights(D) <= rigid_mm))
 
 
-def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
+def rigid_groups(std: np.ndarray, rigid_mm: float, complete: bool = False) -> np.ndarray:
     """(M,) labels 0.. of the average-linkage groups of ``std`` (M, M) cut at ``rigid_mm``.
 
     Each group's markers vary in distance by at most ``rigid_mm`` on average
@@ -165,7 +183,7 @@ def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
     M = std.shape[0]
     D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
     D = 0.5 * (D + D.T)
-    _, root = _average_linkage(D, rigid_mm)
+    _, root = _average_linkage(D, rigid_mm, complete)
     _, lab = np.unique(root, return_inverse=True)
     first = {}
     return np.array([first.setdefault(int(g), len(first)) for g in lab.reshape(-1)], dtype=int) if M else lab
@@ -203,8 +221,10 @@ def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     return _average_linkage(D, np.inf)[0]
 
 
-def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray]:
-    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index))."""
+def _average_linkage(D: np.ndarray, stop: float, complete: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index)).
+
+    ``complete``: complete linkage instead (a cluster's distance is its largest pair's)."""
     D = np.array(D, dtype=float)
     M = D.shape[0]
     np.fill_diagonal(D, np.inf)
@@ -216,13 +236,134 @@ def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray
         if not D[i, j] <= stop:
             break
         heights.append(D[i, j])
-        row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])  # the merged cluster's mean distances
+        if complete:  # the merged cluster's largest distances
+            row = np.maximum(D[i], D[j])
+        else:  # the merged cluster's mean distances
+            row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])
         D[i], D[:, i] = row, row
         D[i, i] = np.inf
         D[j], D[:, j] = np.inf, np.inf
         size[i] += size[j]
         root[root == j] = i
     return np.array(heights), root
+
+
+def skin_level(std: np.ndarray, floor: float = 0.0) -> float:
+    """The take's own level of skin motion and noise, from the distance stds ``std`` (M, M).
+
+    The median, over markers, of each marker's std to its second most rigid partner:
+    a marker on a segment of three or more markers has two partners that vary only by
+    skin motion and noise; on a two-marker segment the second is across a joint, so
+    where the second varies more than ``ACROSS_RATIO`` times the first, the first counts. Markers whose second
+    partner varies by less than ``floor`` are left out (points computed from a model,
+    not measured: a take may carry them rigid to a hundredth of a millimetre). 0 when
+    nothing varies.
+    """
+    M = std.shape[0]
+    if M < 2:
+        return 0.0
+    D = np.where(np.eye(M, dtype=bool), np.inf, np.nan_to_num(std, nan=np.inf))
+    D.sort(axis=1)
+    second = D[:, min(1, M - 2)]
+    second = np.where(second <= ACROSS_RATIO * D[:, 0], second, D[:, 0])
+    second = second[np.isfinite(second)]
+    if (second > floor).sum() * 2 > second.size:  # a few computed points among measured markers
+        second = second[second > floor]
+    return float(np.median(second)) if second.size else 0.0
+
+
+def _extent(mean_d: np.ndarray, idx: np.ndarray) -> float:
+    return float(np.nanmax(mean_d[np.ix_(idx, idx)])) if idx.size > 1 else 0.0
+
+
+def pair_lone_markers(
+    std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_join: float, tau_free: float, reach: float,
+    depth: int = 4,
+) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """Give each marker left alone by the rigid groups a segment, where the data allow.
+
+    A marker on a joint axis keeps a nearly constant distance to the markers of both
+    neighbouring segments, so the rigid groups may put it with the segment that
+    needs it less and leave the other side's marker alone. A lone marker ``m`` may
+    join a group (mean std to it at most ``tau_join``) or take a partner ``j``
+    (std at most ``tau_join``) from its group; if that leaves ``j``'s group with one
+    marker, that marker must in turn find a partner the same way (a chain of at most
+    ``depth`` moves). The cheapest chain (sum of the new stds) that leaves nobody
+    newly alone wins. A marker still alone that varies against its nearest group by
+    less than ``tau_free`` does not move on its own: it joins that group. Markers
+    join or pair only within ``reach`` (mean distance) of each other.
+
+    std, mean_d : (M, M) distance std and mean distance; labels : (M,) groups.
+    Returns the new labels (numbered by first marker) and the moves made
+    (marker index, "paired" | "joined" | "absorbed").
+    """
+    lab = np.array(labels, dtype=int)
+    M = lab.size
+    S = np.where(np.eye(M, dtype=bool), np.inf, np.nan_to_num(std, nan=np.inf))
+    near = np.nan_to_num(mean_d, nan=np.inf) <= reach
+    moves: list[tuple[int, str]] = []
+
+    def group_cost(m: int, L: np.ndarray, g: int) -> float:
+        mem = np.flatnonzero(L == g)
+        mem = mem[mem != m]
+        if not mem.size or not near[m, mem].all():
+            return np.inf
+        return float(S[m, mem].mean())
+
+    def search(m: int, L: np.ndarray, moved: frozenset, d: int):
+        best = None
+        for g in np.unique(L):
+            if g != L[m]:
+                c = group_cost(m, L, g)
+                if c <= tau_join and (best is None or c < best[0]):
+                    best = (c, [(m, int(g), "joined")])
+        if d == 0:
+            return best
+        for j in np.flatnonzero((S[m] <= tau_join) & near[m]):
+            if j in moved or L[j] == L[m]:
+                continue
+            mem = np.flatnonzero(L == L[j])
+            if mem.size < 2:
+                continue
+            c = float(S[m, j])
+            if best is not None and c >= best[0]:
+                continue
+            L2 = L.copy()
+            L2[j] = L[m]
+            if mem.size == 2:  # j's old partner is left alone: it must find a place too
+                r = int(mem[mem != j][0])
+                sub = search(r, L2, moved | {m, int(j)}, d - 1)
+                if sub is None:
+                    continue
+                if best is None or c + sub[0] < best[0]:
+                    best = (c + sub[0], [(int(j), int(L[m]), "paired")] + sub[1])
+            elif best is None or c < best[0]:
+                best = (c, [(int(j), int(L[m]), "paired")])
+        return best
+
+    for _ in range(M):
+        sizes = np.bincount(lab)
+        lone = [i for i in range(M) if sizes[lab[i]] == 1]
+        for m in sorted(lone, key=lambda i: (S[i].min(), i)):
+            res = search(m, lab, frozenset({m}), depth)
+            if res is not None:
+                for i, g, how in res[1]:
+                    lab[i] = g
+                    moves.append((i, how))
+                break
+        else:
+            break
+    # still alone: a marker that hardly moves against its nearest group is skin on it
+    sizes = np.bincount(lab)
+    for m in [i for i in range(M) if sizes[lab[i]] == 1]:
+        costs = [(group_cost(m, lab, g), g) for g in np.unique(lab) if g != lab[m] and (lab == g).sum() > 1]
+        if costs:
+            c, g = min(costs)
+            if c <= tau_free:
+                lab[m] = g
+                moves.append((m, "absorbed"))
+    first: dict[int, int] = {}
+    return np.array([first.setdefault(int(g), len(first)) for g in lab], dtype=int), moves
 
 
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
@@ -282,37 +423,46 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             markers.source or None,
         )
     off = pooled[~np.eye(pooled.shape[0], dtype=bool)]
-    pu = np.zeros((M, M), dtype=bool)  # pairs of usable markers, as columns of the pair distances
-    pu[np.ix_(iu, iu)] = True
-    size = _median_distance(first[:, pu[np.triu_indices(M, 1)]])
-    rigid_mm = min(params.rigid_mm, params.rigid_frac * size) if np.isfinite(size) and size > 0 else params.rigid_mm
-    if k is None and not (np.nanpercentile(off, 95) > rigid_mm if np.isfinite(off).any() else False):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        md = np.nanmean(first, axis=0)  # mean distance of every marker pair
+    size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
+    level = skin_level(pooled, COMPUTED_FRAC * size)
+    tau = max(params.rigid_k * level, COMPUTED_FRAC * size)  # exact data: rigid to rounding
+    if k is None and not (np.nanpercentile(off, 95) > tau if np.isfinite(off).any() else False):
         raise DataError(
-            f"all markers move as one rigid body (95 % of marker distances vary by less than {rigid_mm:.3g} mm)"
+            f"all markers move as one rigid body (95 % of marker distances vary by less than {tau:.3g} mm,"
+            f" {params.rigid_k:g} times the take's own skin and noise level)"
             " — nothing moves relative to anything, so there is no joint to find",
             markers.source or None,
         )
     sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
-    if k is None:
-        k = max(k_auto, rigid_count(pooled, rigid_mm))  # the eigen-gap's count, split further if not rigid
-    if k > iu.size:
-        raise DataError(f"asked for {k} segments but only {iu.size} usable markers", markers.source or None)
-
-    best = None
-    for si, std in enumerate(stds):
-        sub = std[np.ix_(iu, iu)]
-        res = spectral_clustering(affinity(sub, sigma), k, rng=rng)
-        cost = spread_cost(sub, res.labels)
-        if best is None or cost < best[0] - 1e-12:
-            best = (cost, si, res.labels)
-    cost, si, lab = best
     split = []
-    if params.n_segments is None:
-        # spectral clustering may join markers that are not rigid together (a short take that
-        # hardly moves some joints): split such a group into its rigid subgroups — at the absolute
-        # tolerance, not the one scaled to a small subject (real skin moves more than 2 % of an arm)
-        lab, parts = split_nonrigid(lab, pooled, max(rigid_mm, params.rigid_mm))
-        split = [[markers.labels[iu[i]] for i in idx] for idx in parts]
+    if k is None:
+        # the rigid groups at the take's own tolerance, then markers left alone given a place
+        lab = rigid_groups(pooled, tau)
+        mean_d = np.full((M, M), np.nan)
+        ti, tj = np.triu_indices(M, 1)
+        mean_d[ti, tj] = mean_d[tj, ti] = md
+        mean_d = mean_d[np.ix_(iu, iu)]
+        np.fill_diagonal(mean_d, 0.0)
+        ext = [_extent(mean_d, np.flatnonzero(lab == g)) for g in range(lab.max() + 1) if (lab == g).sum() > 1]
+        reach = params.reach * float(np.median(ext)) if ext else np.inf
+        lab, moves = pair_lone_markers(pooled, mean_d, lab, params.join_k * tau, params.free_k * tau, reach)
+        split = [[markers.labels[iu[i]], how] for i, how in moves]
+        si = 0
+        cost = spread_cost(pooled, lab)
+    else:
+        if k > iu.size:
+            raise DataError(f"asked for {k} segments but only {iu.size} usable markers", markers.source or None)
+        best = None
+        for si, std in enumerate(stds):
+            sub = std[np.ix_(iu, iu)]
+            res = spectral_clustering(affinity(sub, sigma), k, rng=rng)
+            cost = spread_cost(sub, res.labels)
+            if best is None or cost < best[0] - 1e-12:
+                best = (cost, si, res.labels)
+        cost, si, lab = best
     group = np.full(M, -1, dtype=int)
     group[iu] = lab
     # number groups by the first marker in each, for stable output
@@ -337,7 +487,10 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         "sigma_mm": sigma,
         "left_out": [markers.labels[i] for i in np.flatnonzero(~use)],
         "groups": [[markers.labels[i] for i in np.flatnonzero(group == g)] for g in range(n)],
-        "split": split,
+        "moved": split,
+        "skin_level_mm": level,
+        "size_mm": size,
+        "rigid_tolerance_mm": tau,
     }
     return Segments(markers=markers, group=group, dist_std=stds[si], eigvals=eig, info=info)
 

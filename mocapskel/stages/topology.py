@@ -18,10 +18,10 @@ import numpy as np
 
 from ..artifacts import Segments, Topology
 from ..errors import DataError
-from ..solvers.jmv import pair_cost
+from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 2
+VERSION = 3
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -32,8 +32,14 @@ PAIR_FRAMES = 40
 class Params:
     n_frames: int = 100
     """Frames (evenly spread over the take, best-visible first) used for the pair costs."""
-    alpha: float = 0.01
-    """Kirk's distance penalty (mm^2 of cost per mm of mean distance)."""
+    alpha: float | None = None
+    """Kirk's distance penalty (mm^2 of cost per mm of mean distance); None: from the take,
+    ``alpha_k`` times the skin-and-noise variance the segment stage measured per median
+    marker distance, so that a joint as far from its markers as markers are from each
+    other costs ``alpha_k`` skin variances (the prior that a joint sits near its
+    segments' markers; Kirk notes it helps where the motion does not exercise every
+    degree of freedom)."""
+    alpha_k: float = 8.0
 
 
 def _visible(points: np.ndarray) -> np.ndarray:
@@ -137,6 +143,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     S = segments.n_segments
     if S < 2:
         raise DataError("fewer than two segments — nothing to connect", segments.markers.source or None)
+    alpha = params.alpha if params.alpha is not None else distance_penalty(segments.info, params.alpha_k)
     vis = _visible(pts)
     frames = subsample(pts, params.n_frames, visible=vis)
     # markers of each segment seen in each frame: one product with the (M, S) membership
@@ -157,11 +164,11 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
             if not fr.size:
                 continue
             if fr.size == frames.size and np.array_equal(fr, frames):
-                C[a, b] = C[b, a] = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=params.alpha,
+                C[a, b] = C[b, a] = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
                                               frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]))
             else:
                 pf = pts[fr]
-                C[a, b] = C[b, a] = pair_cost(pf[:, members[a]], pf[:, members[b]], alpha=params.alpha,
+                C[a, b] = C[b, a] = pair_cost(pf[:, members[a]], pf[:, members[b]], alpha=alpha,
                                               frames=PAIR_FRAMES)
     tree = minimum_spanning_tree(S, C)
     if tree is None:
@@ -169,5 +176,5 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     root = tree_centre(S, tree, {s: int((segments.group == s).sum()) for s in range(S)})
     edges = np.array(_bfs(_neighbours(S, tree), root)[0], dtype=int).reshape(-1, 2)
     cost = np.array([C[a, b] for a, b in edges])
-    info = {"version": VERSION, "frames_used": int(frames.size), "alpha": params.alpha}
+    info = {"version": VERSION, "frames_used": int(frames.size), "alpha": alpha}
     return Topology(segments=segments, edges=edges, cost=cost, pair_cost=C, root=int(root), info=info)

@@ -33,6 +33,18 @@ class Recipe:
     jumps: int = 0
     ghosts: int = 0
     passive: bool = False
+    markerset: str = "default"
+    """Human: "default" (48 markers), "cmu41", "gait" or "cluster" (see synth.realistic)."""
+    skin: str = "none"
+    """Human: "none" or "realistic" (skin motion driven by the joint angles)."""
+    wands: bool = True
+    """Human, gait set: thigh and shank markers on wands."""
+
+    @property
+    def realistic(self) -> bool:
+        """Whether the realistic generator makes this take (a real marker set, real skin or an everyday motion)."""
+        return self.kind == "human" and (self.markerset != "default" or self.skin != "none"
+                                         or self.motion not in ("rom", "walk"))
 
 
 def active_rom(seed: int = 0, frames: int = 7200, **kw) -> Recipe:
@@ -47,6 +59,13 @@ def passive_rom(seed: int = 0, frames: int = 7200, **kw) -> Recipe:
                   gaps_per_marker_per_minute=4.0, ghosts=25, jumps=10, passive=True, **kw)
 
 
+def realistic(seed: int = 0, frames: int = 1200, motion: str = "walk", markerset: str = "cmu41", **kw) -> Recipe:
+    """A take that looks like a real capture: a real marker set, skin motion driven by the joint angles,
+    an everyday motion, 1 mm noise."""
+    return Recipe(kind="human", seed=seed, frames=frames, motion=motion, markerset=markerset, skin="realistic",
+                  noise_mm=1.0, **kw)
+
+
 def make(recipe: Recipe) -> SynthTake:
     """Generate the take a recipe describes (deterministic for its seed)."""
     from . import corrupt
@@ -54,7 +73,16 @@ def make(recipe: Recipe) -> SynthTake:
     from .human import human_take
 
     rng = np.random.default_rng(recipe.seed)
-    if recipe.kind == "human":
+    if recipe.realistic:
+        from .realistic import realistic_take
+
+        kw = {} if recipe.markers_per_segment is None else {"markers_per_segment": recipe.markers_per_segment}
+        take = realistic_take(
+            rng=rng, n_frames=recipe.frames, rate=recipe.rate, markerset=recipe.markerset, motion=recipe.motion,
+            skin=recipe.skin, noise_mm=recipe.noise_mm, scale=recipe.scale, subject_seed=recipe.subject_seed,
+            wands=recipe.wands, soft_tissue_mm=recipe.soft_tissue_mm, **kw,
+        )
+    elif recipe.kind == "human":
         kw = {} if recipe.markers_per_segment is None else {"markers_per_segment": recipe.markers_per_segment}
         take = human_take(
             rng=rng, n_frames=recipe.frames, rate=recipe.rate, motion=recipe.motion, scale=recipe.scale,
