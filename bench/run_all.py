@@ -14,6 +14,7 @@ BENCHES = [
     ("Passive data: merge-ids", "bench.passive"),
     ("Batches: local workers", "bench.batch"),
     ("Real takes", "bench.realdata"),
+    ("Output checks: real and generated takes", "bench.checks"),
     ("Humanoid names", "bench.names"),
     ("Generated takes that look like real captures", "bench.realistic"),
     ("Real takes with a reference skeleton", "bench.realref"),

@@ -183,12 +183,16 @@ class BatchOptions:
         default (``$XDG_CACHE_HOME/mocapskel`` or ``~/.cache/mocapskel``).
     use_cache : bool
         False: neither read nor write the artifact cache.
+    strict : bool
+        A take whose output checks fail (:mod:`mocapskel.checks`) fails with
+        exit code 4 instead of being written with warnings.
     """
 
     params: dict[str, Any] = field(default_factory=pipeline.make_params)
     read: ReadOptions = ReadOptions()
     cache_dir: str | None = None
     use_cache: bool = True
+    strict: bool = False
 
 
 def options_hash(options: BatchOptions) -> str:
@@ -323,6 +327,10 @@ def fit_take(task: TakeTask) -> TakeResult:
         with _quiet_logging():
             cache = Cache(opts.cache_dir or default_dir()) if opts.use_cache else Cache(None)
             res = pipeline.fit(task.input, opts.params, cache=cache, read=opts.read)
+            if opts.strict and res.report.get("checks"):
+                from .checks import Finding, strict_error
+
+                raise strict_error([Finding(c["check"], c["name"], c["message"]) for c in res.report["checks"]], task.input)
             b = res.bvh
             text = bvh_text(b.skeleton, b.root_pos, b.local_rot, b.frame_time)
         report = dict(res.report)

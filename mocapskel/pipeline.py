@@ -265,9 +265,21 @@ def fit(
     run.seconds["export"] = time.perf_counter() - t_exp
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
+    _finish_report(report, run, bvh)
+    return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
+
+
+def _finish_report(report: dict, run: Run, bvh: Any) -> None:
+    """The export's naming and notes, and the checks of the solved motion, into ``report``."""
+    from . import checks
+
     report["export"] = bvh.report()
     report["warnings"].extend(bvh.notes)
-    return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
+    t_chk = time.perf_counter()
+    motion = run.artifact
+    findings = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))
+    checks.add_to_report(report, findings)
+    report["seconds"]["checks"] = round(time.perf_counter() - t_chk, 4)
 
 
 def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache,
@@ -298,7 +310,9 @@ def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache
         run.seconds["subject_total"] = time.perf_counter() - t
         run.seconds["total"] = time.perf_counter() - t0
         run.warnings.append(f"the take holds {K} subjects; this fit is subject {i} ({len(idx)} markers)")
-        results.append(FitResult(motion=run.artifact, bvh=bvh, report=build_report(run, params), run=run))
+        report = build_report(run, params)
+        _finish_report(report, run, bvh)
+        results.append(FitResult(motion=run.artifact, bvh=bvh, report=report, run=run))
     listing = [
         {"index": i, "markers": [mk_all.labels[j] for j in g], "segments": len(r.bvh.skeleton.names),
          "marker_rms_mm": r.report.get("ik", {}).get("marker_rms_mm")}
@@ -383,4 +397,9 @@ def solve(
         "seconds": {k: round(v, 4) for k, v in seconds.items()},
         "warnings": warnings + list(bvh.notes),
     }
+    from . import checks
+
+    t = time.perf_counter()
+    checks.add_to_report(report, checks.run_checks(motion, pts))
+    report["seconds"]["checks"] = round(time.perf_counter() - t, 4)
     return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings))

@@ -85,6 +85,7 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
         "marker_rms_mm": _f(motion.info.get("rms_mm")),
         "marker_rms_mm_per_segment": {k: _f(v) for k, v in motion.info.get("rms_mm_per_segment", {}).items()},
         "filled_fraction": _f(motion.info.get("filled_fraction")),
+        "unflip": motion.info.get("unflip"),
     }
     rep["seconds"] = {k: round(float(v), 4) for k, v in run.seconds.items()}
     rep["cached_stages"] = list(run.cached)

@@ -96,7 +96,9 @@ def _reference_run(markers, params: clean.Params):
     F = pts.shape[0]
     vis0 = np.isfinite(pts).all(axis=2)
     pts[~vis0] = np.nan
-    jumps = _reference_find_jumps(pts, markers.rate, params)
+    candidates = _reference_find_jumps(pts, markers.rate, params)
+    # the candidates of markers with rigid partners are judged by them (tested on their own below)
+    jumps = clean.rigid_verdict(pts, vis0, candidates, markers.rate, params) if params.rigid else candidates
     vis = vis0 & ~jumps
     trimmed = np.zeros_like(vis)
     if params.trim_frames > 0 and F > 2 * params.trim_frames:
@@ -110,7 +112,7 @@ def _reference_run(markers, params: clean.Params):
     vis &= ~short_mask
     pts[~vis] = np.nan
     keep = vis.any(axis=0)
-    info = {"jump_samples": int(jumps.sum()), "trimmed_samples": int((trimmed & ~jumps).sum()),
+    info = {"jump_samples": int(jumps.sum()), "jump_candidates": int(candidates.sum()), "trimmed_samples": int((trimmed & ~jumps).sum()),
             "short_run_samples": int((short_mask & ~trimmed).sum()), "short_runs": int(short[1:].sum()),
             "visible_before": int(vis0.sum()), "visible_after": int(vis.sum())}
     return pts[:, keep], info
@@ -187,3 +189,62 @@ def test_consume_reuses_the_input_array_and_changes_nothing_else():
     assert owned.labels == plain.labels and owned.info["clean"] == plain.info["clean"]
     assert len(plain.labels) < m.n_markers  # some markers were dropped: the in-place compaction was exercised
     np.testing.assert_array_equal(owned.points, plain.points)
+
+
+# --------------------------------------------------------------------------- fast motion is not a jump
+
+
+FAST_CHAIN = (4, 3, 3, 4, 3, 3, 3, 3)  # Hang's <4-3-3-4-3-3-3-3>: 26 markers
+
+
+def _fast_chain(links: int, seed: int, frames: int = 600):
+    from mocapskel.synth.chains import hang_chain
+
+    return hang_chain(FAST_CHAIN[:links], frames, rng=np.random.default_rng(seed), link_length=1000.0)
+
+
+@pytest.mark.parametrize("links", [4, 6, 8])
+def test_noise_free_fast_chain_keeps_every_marker_and_segment(links):
+    """A noise-free chain of links of 1 m at 100 Hz lost 12 of its 26 markers to clean (286 samples called
+    jumps because the far links move fast) and 4 of its 8 segments from the BVH."""
+    from mocapskel import pipeline
+
+    take = _fast_chain(links, seed=0)
+    assert take.markers.rate == 100.0
+    speed = np.linalg.norm(np.diff(take.markers.points, axis=0), axis=-1).max() * take.markers.rate
+    assert speed > 5000.0  # markers faster than 5 m/s: the old test called such samples jumps
+    out = clean.run(take.markers)
+    info = out.info["clean"]
+    assert info["jump_samples"] == 0 and info["dropped_markers"] == [] and info["jump_candidates"] > 0
+    assert out.n_markers == take.markers.n_markers
+    res = pipeline.fit(take.markers, pipeline.make_params())
+    assert len(res.motion.skeleton.names) == links
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_planted_jumps_in_a_fast_chain_become_gaps(seed):
+    """The rigid test still finds the generator's jumps where the markers move fast."""
+    from mocapskel.synth import corrupt
+
+    take = corrupt.add_jumps(_fast_chain(4, seed, 1000), np.random.default_rng(seed + 10), n_jumps=20)
+    planted = corrupt.bad_sample_mask(take)
+    out = clean.run(take.markers)
+    assert out.n_markers == take.markers.n_markers
+    found = ~np.isfinite(out.points).all(-1)
+    assert found[planted].mean() >= 0.97
+    from scipy.ndimage import binary_dilation
+
+    near = binary_dilation(planted, structure=np.ones((2 * clean.Params().trim_frames + 1, 1), dtype=bool))
+    assert (found & ~near).mean() < 0.01
+
+
+def test_rigid_verdict_without_partners_keeps_the_candidates():
+    """A marker seen with fewer than two rigid partners is judged by its path alone."""
+    rng = np.random.default_rng(0)
+    F = 600
+    pts = np.cumsum(rng.normal(size=(F, 2, 3)), axis=0) * 5.0  # two unrelated markers
+    pts = np.concatenate([pts, pts[:, :1] + 100.0], axis=1)  # one partner for marker 0 (not two)
+    vis = np.ones((F, 3), dtype=bool)
+    cand = np.zeros((F, 3), dtype=bool)
+    cand[100:103, 0] = True
+    np.testing.assert_array_equal(clean.rigid_verdict(pts, vis, cand, 100.0), cand)

@@ -15,7 +15,7 @@ import click
 from .. import pipeline
 from ..batch import BatchOptions, Take, TakeResult, run_batch
 from .main import cli
-from .options import bvh_options, cache_options, common, fit_options, make_read, naming_options, read_options
+from .options import bvh_options, cache_options, common, fit_options, make_read, naming_options, read_options, strict_option
 
 log = logging.getLogger("mocapskel")
 
@@ -61,11 +61,12 @@ def _progress_printer(show: bool):
 @fit_options
 @bvh_options
 @naming_options
+@strict_option
 @read_options
 @cache_options
 @common
 def batch_cmd(inputs, outdir, jobs, scheduler, force, n_subjects, segments, joint_method, rest_frame, up, units,
-              names, rest, exclude, include, cache_dir, no_cache):
+              names, rest, strict, exclude, include, cache_dir, no_cache):
     """Fit every take of INPUTS (files, folders of .c3d/.trc, globs) and summarise them.
 
     Writes OUTDIR/<take>.bvh, OUTDIR/<take>.json (the report) and
@@ -85,7 +86,8 @@ def batch_cmd(inputs, outdir, jobs, scheduler, force, n_subjects, segments, join
     """
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
                                   names=names, rest=rest)
-    options = BatchOptions(params=params, read=make_read(exclude, include), cache_dir=cache_dir, use_cache=not no_cache)
+    options = BatchOptions(params=params, read=make_read(exclude, include), cache_dir=cache_dir, use_cache=not no_cache,
+                           strict=strict)
     if scheduler and jobs:
         log.warning("warning: --jobs is ignored with --scheduler (the cluster's workers do the work)")
     res = run_batch(inputs, outdir, options, jobs=jobs, scheduler=scheduler, force=force, subjects=n_subjects,

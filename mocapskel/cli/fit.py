@@ -21,6 +21,7 @@ from .options import (
     make_read,
     naming_options,
     read_options,
+    strict_option,
 )
 
 log = logging.getLogger("mocapskel")
@@ -74,6 +75,15 @@ def write_outputs(out, output, gltf_path, b) -> None:
             write_bvh(out.stage(path), b.skeleton, b.root_pos, b.local_rot, b.frame_time)
 
 
+def raise_if_strict(strict: bool, report: dict, source: str) -> None:
+    """With ``--strict``, a failing output check is an error (exit code 4) before anything is written."""
+    from ..checks import Finding, strict_error
+
+    if strict and report.get("checks"):
+        err = strict_error([Finding(c["check"], c["name"], c["message"]) for c in report["checks"]], str(source))
+        raise err
+
+
 def write_report(path, report: dict) -> None:
     with atomic_open(path, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=2, allow_nan=False)
@@ -91,10 +101,11 @@ def write_report(path, report: dict) -> None:
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
 @click.option("--html", "html_path", type=click.Path(), default=None, help="Also write the HTML report (plots, 3-D view) here; needs mocapskel[report].")
+@strict_option
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, html_path, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, html_path, strict, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -120,6 +131,8 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
     params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
                                   names=names, rest=rest)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
+    for r in (res.subjects if len(res.subjects) > 1 else [res]):
+        raise_if_strict(strict, r.report, input)
     several = len(res.subjects) > 1
     fits = res.subjects if several else [res]
     for r in fits:  # one subject: the names as given; several: OUT_1.bvh, OUT_2.bvh … and likewise every output

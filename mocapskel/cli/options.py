@@ -48,6 +48,12 @@ def fit_options(f):
     return f
 
 
+def strict_option(f):
+    """``--strict``: a failing output check (see mocapskel.checks) is an error, exit code 4."""
+    return click.option("--strict", is_flag=True,
+                        help="Fail (exit 4, nothing written) when an output check fails instead of warning.")(f)
+
+
 def bvh_options(f):
     f = click.option("--units", type=click.Choice(["cm", "mm", "m"]), default="cm", show_default=True, help="BVH units.")(f)
     f = click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="BVH up axis (y: lab (x,y,z) → (x,z,−y)).")(f)

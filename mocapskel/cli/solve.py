@@ -9,9 +9,9 @@ from .. import pipeline
 from ..io.atomic import AtomicOutputs
 from ..io.bvh import write_bvh
 from ..io.skeleton import read_skeleton
-from .fit import write_markers_out, write_report
+from .fit import raise_if_strict, write_markers_out, write_report
 from .main import cli, say_warnings
-from .options import bvh_options, check_output, common, make_read, naming_options, read_options
+from .options import bvh_options, check_output, common, make_read, naming_options, read_options, strict_option
 
 log = logging.getLogger("mocapskel")
 
@@ -24,9 +24,10 @@ log = logging.getLogger("mocapskel")
 @naming_options
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write a JSON report here.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Write the markers plus virtual joint markers (.c3d or .trc).")
+@strict_option
 @read_options
 @common
-def solve_cmd(input, skeleton_path, output, up, units, names, rest, report_path, markers_out, exclude, include):
+def solve_cmd(input, skeleton_path, output, up, units, names, rest, report_path, markers_out, strict, exclude, include):
     """Solve another take of a subject by IK alone, with the skeleton fitted on its calibration take.
 
     Markers are matched by label; missing ones are tolerated, unknown ones ignored
@@ -45,6 +46,7 @@ def solve_cmd(input, skeleton_path, output, up, units, names, rest, report_path,
     skel = read_skeleton(skeleton_path)
     params = pipeline.make_params(up=up, units=units, names=names, rest=rest)
     res = pipeline.solve(input, skel, params, read=make_read(exclude, include))
+    raise_if_strict(strict, res.report, input)
     b = res.bvh
     with AtomicOutputs() as out:  # every output appears at the end, or none does
         write_bvh(out.stage(output), b.skeleton, b.root_pos, b.local_rot, b.frame_time)

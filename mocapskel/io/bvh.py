@@ -1130,3 +1130,80 @@ def bvh_rot_to_lab(R: np.ndarray, up: str = "y") -> np.ndarray:
         Stored as :func:`lab_rot_to_bvh` stores its result.
     """
     return _permute_rot(R, _axes(up).T)
+
+
+# --------------------------------------------------------------------------- rotation order
+
+
+def gimbal_margin(local_rot: np.ndarray) -> np.ndarray:
+    """How far each joint stays from gimbal lock in each rotation order, over a take.
+
+    With order (i, j, k) the middle angle ``b`` has ``sin b = ±R[i, k]``, and the
+    Euler angles turn ``1 / cos b`` times faster than the rotation (near lock a
+    1-degree turn can swing the outer angles by tens of degrees). The margin is
+    ``90 - max |b|`` over frames.
+
+    Parameters
+    ----------
+    local_rot : (F, S, 3, 3) array_like
+
+    Returns
+    -------
+    (S, 6) ndarray
+        Degrees, columns in :data:`~mocapskel.solvers.rotations.ORDERS` order.
+    """
+    from ..solvers.rotations import ORDERS
+
+    R = np.asarray(local_rot, dtype=np.float64)
+    S = R.shape[1]
+    out = np.empty((S, len(ORDERS)))
+    if R.shape[0] == 0:
+        out[:] = 90.0
+        return out
+    top = np.maximum(R.max(axis=0), -R.min(axis=0))  # (S, 3, 3): the largest |R[i, k]| over frames (no copy of R)
+    for n, order in enumerate(ORDERS):
+        i, _, k, _ = _parse_order(order)
+        out[:, n] = 90.0 - np.degrees(np.arcsin(np.clip(top[:, i, k], 0.0, 1.0)))
+    return out
+
+
+def near_lock_counts(local_rot: np.ndarray, within_deg: float = 20.0) -> np.ndarray:
+    """(6,) joint-frames whose middle angle comes within ``within_deg`` of gimbal lock, per order
+    (:data:`~mocapskel.solvers.rotations.ORDERS`); there the Euler angles turn more than
+    ``1 / sin(within_deg)`` times faster than the rotation."""
+    from ..solvers.rotations import ORDERS
+
+    R = np.asarray(local_rot, dtype=np.float64)
+    lim = np.cos(np.radians(within_deg))  # |sin b| above this
+    out = np.zeros(len(ORDERS), dtype=np.int64)
+    for n, order in enumerate(ORDERS):
+        i, _, k, _ = _parse_order(order)
+        x = R[..., i, k]
+        out[n] = int(np.count_nonzero(x > lim) + np.count_nonzero(x < -lim))
+    return out
+
+
+def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0,
+                          near_deg: float = 20.0) -> str:
+    """One rotation order for every joint of a take, far from gimbal lock.
+
+    ``preferred`` when every joint stays at least ``min_margin_deg`` from lock
+    in it (the Euler angles then turn at most twice as fast as the rotation).
+    Otherwise the order with the fewest joint-frames within ``near_deg`` of
+    lock (:func:`near_lock_counts`: where spikes can appear), and among those
+    the one whose closest joint stays farthest from lock, ``preferred`` first
+    among equals. See :func:`gimbal_margin`.
+    """
+    from ..solvers.rotations import ORDERS
+
+    pref = preferred.upper()
+    _parse_order(pref)
+    R = np.asarray(local_rot)
+    if R.shape[0] == 0 or R.shape[1] == 0:
+        return pref
+    worst = gimbal_margin(R).min(axis=0)
+    if worst[ORDERS.index(pref)] >= min_margin_deg:
+        return pref
+    near = near_lock_counts(R, near_deg)
+    cands = [pref] + [o for o in ORDERS if o != pref]
+    return min(cands, key=lambda o: (near[ORDERS.index(o)], -worst[ORDERS.index(o)]))

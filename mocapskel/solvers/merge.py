@@ -50,6 +50,8 @@ __all__ = [
     "partners_of",
     "rigid_outliers",
     "rigid_steps",
+    "rigid_jumps",
+    "judged_by_partners",
     "runs_of",
     "time_gaps",
     "link_tracks",
@@ -375,7 +377,7 @@ def rigid_steps(
     at once. A frame is an *edge* of label ``i`` when at least two of its
     partners, and more than half of those that can judge, see the change of
     their vector to ``i`` depart from the median of the changes one and two
-    frames before and after by more than ``step_mm`` and
+    frames before and after, and from the cubic and parabolas through them, by more than ``step_mm`` and
     more than 8 times that pair's median departure (fast turns and low frame
     rates raise the bar). A stretch of a visible
     run between two edges, at most ``max_len`` frames long and shorter than
@@ -420,7 +422,26 @@ def rigid_steps(
     nbs.sort(axis=0)  # NaN last
     cnt = np.isfinite(nbs[:, ..., 0]).sum(0)[..., None]  # (F, P, 1)
     nb = np.where(cnt == 4, 0.5 * (nbs[1] + nbs[2]), np.where(cnt == 3, nbs[1], np.where(cnt == 2, 0.5 * (nbs[0] + nbs[1]), np.nan)))
+    del nbs
     dev = np.linalg.norm(dr - nb, axis=-1)  # (F, P), NaN where it cannot be judged
+    # The median predicts a steady turn; a fast turn that speeds up (a far link of a long chain
+    # swinging at metres per second) departs from it by its acceleration. The cubic through the
+    # changes 2 and 1 frames before and after, and the parabolas through the 3 changes before
+    # and the 3 after (at the take's ends and next to gaps), follow such a turn, but a jump edge
+    # among their changes moves them: a frame is judged by the smallest of these departures
+    # (an edge departs from all of them, none of which reads its own change; a smooth fast turn
+    # only from the median; a frame next to an edge not from the predictions that skip it).
+    pred = np.full_like(dr, np.nan)
+    with np.errstate(invalid="ignore"):
+        pred[2:-2] = (4.0 * (dr[1:-3] + dr[3:-1]) - (dr[:-4] + dr[4:])) / 6.0
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+        pred[:] = np.nan
+        pred[:-3] = 3.0 * (dr[1:-2] - dr[2:-1]) + dr[3:]
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+        pred[:] = np.nan
+        pred[3:] = 3.0 * (dr[2:-1] - dr[1:-2]) + dr[:-3]
+        dev = np.fmin(dev, np.linalg.norm(dr - pred, axis=-1))
+    del pred
     ok = np.isfinite(dev)
     scale = np.zeros(pi.size)
     judged = ok.any(axis=0)
@@ -461,6 +482,52 @@ def rigid_steps(
     prv_both = np.r_[False, both[:-1]]
     one = short & ((e_end & ~e_start & ~nxt_both) | (e_start & ~e_end & ~prv_both))
     return vis & (both | one)[sid]
+
+
+def rigid_jumps(
+    points: np.ndarray,
+    vis: np.ndarray,
+    mean: np.ndarray,
+    std: np.ndarray,
+    partner: np.ndarray,
+    *,
+    jump_mm: float = 20.0,
+    step_mm: float = 40.0,
+    max_len: int = 36,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sporadic jumps: samples that leave their rigid partners for at most ``max_len`` frames.
+
+    The samples :func:`rigid_outliers` calls hard, grown along time into the
+    soft ones next to them, in runs of at most ``max_len`` frames (a marker
+    away from its partners for longer is not a sporadic jump), plus the
+    stretches :func:`rigid_steps` finds by their abrupt edges. Speed plays no
+    part: a marker that moves fast with its partners keeps its samples.
+
+    Returns
+    -------
+    jumps, soft : (F, L) bool ndarrays (``soft``: :func:`rigid_outliers`' soft samples).
+    """
+    hard, soft = rigid_outliers(points, vis, mean, std, partner, jump_mm=jump_mm)
+    jumps = hard.copy()
+    if hard.any():  # grow every hard sample along time through the soft samples next to it
+        from scipy import ndimage  # (importing it costs a tenth of a second)
+
+        vert = np.zeros((3, 3), dtype=bool)
+        vert[:, 1] = True
+        jumps = ndimage.binary_propagation(hard, structure=vert, mask=soft | hard)
+        col, s0, s1 = runs_of(jumps)
+        long = (s1 - s0) > max_len
+        for c_, a_, b_ in zip(col[long], s0[long], s1[long]):
+            jumps[a_:b_, c_] = False
+    jumps |= rigid_steps(points, vis, partner, step_mm=step_mm, max_len=max_len)
+    return jumps, soft
+
+
+def judged_by_partners(vis: np.ndarray, partner: np.ndarray, least: int = 2) -> np.ndarray:
+    """(F, L) bool: samples seen with at least ``least`` of their rigid partners (what the rigid tests can judge)."""
+    if vis.size == 0:
+        return np.zeros(vis.shape, dtype=bool)
+    return vis & ((vis.astype(np.float32) @ partner.astype(np.float32)) >= least)
 
 
 def time_gaps(vis: np.ndarray) -> np.ndarray:

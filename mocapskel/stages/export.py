@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..io.bvh import BvhSkeleton, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
 from ..naming import SCHEMES, Naming, name_skeleton
 
 VERSION = 3
@@ -38,7 +38,10 @@ NAMES = SCHEMES
 class Params:
     up: str = "y"
     units: str = "cm"
-    order: str = "ZXY"
+    order: str = "auto"
+    """Rotation channel order of every joint; "auto": ZXY unless some joint comes within
+    30 degrees of gimbal lock in it, then the order that keeps joints farthest from lock
+    (:func:`~mocapskel.io.bvh.choose_rotation_order`)."""
     names: str = "auto"
     rest: str = "frame"
 
@@ -251,7 +254,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         parent=par,
         offset=offset,
         end_site=lab_to_bvh(end_lab[perm], params.up, params.units),
-        order=params.order,
+        order=choose_rotation_order(local) if params.order == "auto" else params.order,
     )
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
     return BvhMotion(bskel, lab_to_bvh(root_world, params.up, params.units), local, 1.0 / rate,

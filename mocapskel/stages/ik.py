@@ -22,10 +22,10 @@ import numpy as np
 from ..artifacts import Motion, Skeleton, markers_of
 from ..errors import DataError
 from ..solvers.calibrate import track
-from ..solvers.ik import segment_poses, solve_ik
+from ..solvers.ik import segment_poses, solve_ik, unflip
 from ..solvers.rotations import matrix_to_rotvec, rotvec_to_matrix
 
-VERSION = 4
+VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,10 @@ class Params:
     track_below: int = 3
     """Skeletons with a segment of fewer markers than this are solved from the
     rigid stage's refined poses, coarse to fine in time (when it has them); 0: never."""
+    max_step_deg: float = 45.0
+    """Stretches of up to 0.5 s that a segment spends between two turns of more than this
+    (deg) in one frame are solved again from its rotation slerped across them, and take
+    the new poses where they fit as well (:func:`~mocapskel.solvers.ik.unflip`); 0: never."""
 
 
 def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +127,7 @@ def _edges(skel: Skeleton) -> np.ndarray:
 def solve(
     skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10,
     rate: float = 0.0, source: str = "", chunk: int = 2048, tol: float = Params.tol,
-    key_poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    key_poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, max_step_deg: float = Params.max_step_deg,
 ) -> Motion:
     """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``).
 
@@ -149,6 +153,11 @@ def solve(
             kw = {"init_root": root0, "prior_rot": rot0, "out": rot0}  # the start is not needed after
         res = solve_ik(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points, iterations=iterations, tol=tol, **kw)
         rot, root_pos, resid = res.rot, res.root_pos, res.residual
+    flips = None
+    if max_step_deg > 0:  # of two equally good poses, the one near its neighbours
+        rot, root_pos, resid, flips = unflip(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points,
+                                             rot, root_pos, resid, max_step_deg=max_step_deg, iterations=iterations,
+                                             max_run=max(2, int(round(0.5 * rate))) if rate and rate > 0 else 60)
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
         solved = np.ones(F, dtype=bool)
@@ -175,6 +184,7 @@ def solve(
         "rms_mm": rms(slice(None)),
         "rms_mm_per_segment": {name: rms(skel.marker_segment == s) for s, name in enumerate(skel.names)},
         "filled_fraction": float(1.0 - count.sum() / resid.size) if resid.size else 0.0,
+        "unflip": flips,
     }
     return Motion(skeleton=skel, root_pos=root_pos, rot=rot, residual=resid, rate=rate, source=source, info=info)
 
@@ -191,7 +201,7 @@ def run(skel: Skeleton, params: Params = Params()) -> Motion:
     if skel.pose_frames is not None and (counts < params.track_below).any():
         key = (skel.pose_frames, skel.pose_rot, skel.pose_root)
     return solve(skel, mk.points, centres, iterations=params.iterations, rate=mk.rate, source=mk.source, tol=params.tol,
-                 key_poses=key)
+                 key_poses=key, max_step_deg=params.max_step_deg)
 
 
 def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:

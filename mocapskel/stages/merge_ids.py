@@ -438,19 +438,11 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     st = mg_.state(track)
     reliable = mg.partners_of(st.mean, st.std, st.n, mg_.rigid_mm,
                               max(mg_.min_shared, int(p.reliable_s * rate / mg_.sums.stride)), st.shared, 0.02)
-    hard, soft = mg.rigid_outliers(st.points, st.vis, st.mean, st.std, reliable, jump_mm=p.jump_mm)
+    max_len = max(1, int(round(p.max_jump_s * rate)))
+    jumps, soft = mg.rigid_jumps(st.points, st.vis, st.mean, st.std, reliable, jump_mm=p.jump_mm, step_mm=p.step_mm,
+                                 max_len=max_len)
     from scipy import ndimage  # here: passive takes only (importing it costs a tenth of a second)
 
-    vert = np.zeros((3, 3), dtype=bool)
-    vert[:, 1] = True
-    jumps = ndimage.binary_propagation(hard, structure=vert, mask=soft | hard) if hard.any() else hard
-    max_len = max(1, int(round(p.max_jump_s * rate)))
-    if jumps.any():  # sporadic: a marker away from its partners for long is not a jump
-        col, s0, s1 = mg.runs_of(jumps)
-        long = (s1 - s0) > max_len
-        for c_, a_, b_ in zip(col[long], s0[long], s1[long]):
-            jumps[a_:b_, c_] = False
-    jumps |= mg.rigid_steps(st.points, st.vis, reliable, step_mm=p.step_mm, max_len=max_len)
     keep = st.vis & ~jumps
     # doubtful samples within edge_frames of a gap (including the new ones)
     k = max(0, int(p.edge_frames))

@@ -1,0 +1,278 @@
+"""Checks of a solved take before it is written: is this a skeleton a subject can have?
+
+A fit can explain its markers well and still be nonsense (a joint free to slide
+along a direction the markers do not fix), and a take in the wrong units or a
+skeleton of another subject can be solved without an error. These checks judge
+the result against the take itself, with no template:
+
+- ``units``         a subject larger than any optical capture volume (marker
+                    extent above 20 m) or smaller than 5 mm: a take in other
+                    units than it says (micrometres labelled mm fit as well as
+                    millimetres: the fit alone cannot tell);
+- ``residual``      a segment's IK marker residual far above the noise its rigid
+                    fit measured (more than 3 times that noise plus 10 mm): a take
+                    in other units than it says, another subject's skeleton, a
+                    segment the skeleton cannot follow;
+- ``bone_length``   a bone (joint to joint, or to the End Site) longer than the
+                    subject's marker extent (the median over frames of the
+                    largest distance between two markers seen at once);
+- ``joint_far``     a joint farther than half that extent from every marker of
+                    its two segments;
+- ``joint_step``    frames where a joint moves more than the take's fastest
+                    marker plus 20 mm (a pop the markers do not show; not the
+                    fastest marker of the joint's own segments: a well placed
+                    joint beyond its segments' markers moves faster than they do,
+                    108 against 71 mm in one frame of a noise-free generated chain);
+- ``rotation_flip`` frames where a joint's rotation relative to its parent turns
+                    by more than 90 degrees while the fastest marker of its two
+                    segments moves less than a tenth of its segment's extent
+                    (two equivalent solutions swapped, not a fast turn);
+- ``not_converged`` joints whose centre fit stopped before converging.
+
+Every failing check is one :class:`Finding`: which check, the joint or segment
+it names, the frames (empty when it holds for the whole take) and a sentence.
+The pipeline adds them to the report's ``checks`` and ``warnings``; ``--strict``
+turns any of them into exit code 4. Vectorised over frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .artifacts import Motion
+from .kinematics import segment_origins
+
+__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text"]
+
+
+@dataclass(frozen=True)
+class Limits:
+    residual_factor: float = 3.0
+    """A segment's IK rms may be this many times its rigid-fit noise..."""
+    residual_margin_mm: float = 10.0
+    """...plus this (soft tissue the rigid fit averages away)."""
+    bone_extent: float = 1.0
+    """A bone may be at most this fraction of the marker extent."""
+    joint_extent: float = 0.5
+    """A joint may be at most this fraction of the extent from its segments' markers."""
+    step_margin_mm: float = 20.0
+    """A joint may move this much more in one frame than the fastest marker."""
+    flip_deg: float = 90.0
+    """A joint's rotation step (deg, one frame) above this is a flip when the markers hardly move."""
+    extent_frames: int = 400
+    """Frames sampled to measure the marker extent."""
+    largest_mm: float = 20_000.0
+    """No optical capture volume holds a subject larger than this."""
+    smallest_mm: float = 5.0
+    """...nor one smaller than this."""
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One failing check."""
+
+    check: str
+    name: str
+    message: str
+    frames: tuple[int, ...] = field(default_factory=tuple)
+
+    def as_dict(self) -> dict:
+        return {"check": self.check, "name": self.name, "frames": frames_text(self.frames), "n_frames": len(self.frames),
+                "message": self.message}
+
+
+def frames_text(frames: tuple[int, ...] | np.ndarray, most: int = 8) -> str:
+    """Frames as runs, e.g. ``"12-14, 30 (+5 more runs)"``; ``""`` for none."""
+    f = np.unique(np.asarray(frames, dtype=np.int64))
+    if f.size == 0:
+        return ""
+    brk = np.flatnonzero(np.diff(f) > 1)
+    starts = np.r_[f[0], f[brk + 1]]
+    ends = np.r_[f[brk], f[-1]]
+    parts = [str(a) if a == b else f"{a}-{b}" for a, b in zip(starts[:most].tolist(), ends[:most].tolist())]
+    more = starts.size - most
+    return ", ".join(parts) + (f" (+{more} more runs)" if more > 0 else "")
+
+
+def marker_extent(points: np.ndarray, n_frames: int = 400) -> float:
+    """The subject's size: median over (up to ``n_frames`` evenly spread) frames of the
+    largest distance between two markers seen in that frame (mm; NaN if no frame shows two)."""
+    F = points.shape[0]
+    idx = np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
+    d = []
+    for f in idx:  # a few hundred frames, each a small pairwise matrix
+        p = points[f]
+        p = p[np.isfinite(p).all(1)]
+        if p.shape[0] >= 2:
+            diff = p[:, None, :] - p[None, :, :]
+            d.append(float(np.sqrt((diff * diff).sum(-1)).max()))
+    return float(np.median(d)) if d else float("nan")
+
+
+def _joint_name(names: tuple[str, ...], parent: np.ndarray, s: int) -> str:
+    return f"{names[parent[s]]}-{names[s]}" if parent[s] >= 0 else names[s]
+
+
+def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *, joint_notes: dict[int, str] | None = None) -> list[Finding]:
+    """Check a solved take; returns the failing checks (empty when everything holds).
+
+    Parameters
+    ----------
+    motion : Motion
+        The IK result (its skeleton's markers ordered as ``points``' columns).
+    points : (F, M, 3) ndarray
+        The markers the motion was solved from (mm, NaN where unseen).
+    limits : Limits
+    joint_notes : {child segment: note}
+        Joints whose centre fit did not converge, with the solver's reason.
+    """
+    sk = motion.skeleton
+    names, parent = sk.names, np.asarray(sk.parent)
+    S = len(names)
+    F = motion.root_pos.shape[0]
+    seg = np.asarray(sk.marker_segment)
+    out: list[Finding] = []
+    extent = marker_extent(points, limits.extent_frames)
+
+    if np.isfinite(extent) and not limits.smallest_mm <= extent <= limits.largest_mm:
+        out.append(Finding("units", "take",
+                           f"the subject's marker extent is {extent:.4g} mm, "
+                           f"{'more' if extent > limits.largest_mm else 'less'} than a capture volume can hold — "
+                           "is the take in other units than it says (mm)?"))
+
+    # residual against the rigid fit's noise
+    res = np.asarray(motion.residual, dtype=np.float64)
+    noise = np.asarray(sk.noise, dtype=np.float64)
+    typical = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 0.0
+    for s in range(S):
+        cols = np.flatnonzero(seg == s)
+        if not cols.size:
+            continue
+        r = res[:, cols]
+        seen = np.isfinite(r)
+        if not seen.any():
+            continue
+        r2 = np.where(seen, r, 0.0) ** 2
+        rms = float(np.sqrt(r2.sum() / seen.sum()))
+        nz = noise[s] if np.isfinite(noise[s]) else typical
+        thr = limits.residual_factor * nz + limits.residual_margin_mm
+        if rms > thr:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                per = np.sqrt(r2.sum(1) / seen.sum(1))
+            bad = np.flatnonzero(per > thr)
+            out.append(Finding("residual", names[s],
+                               f"segment {names[s]}: IK marker rms {rms:.1f} mm against a rigid-fit noise of {nz:.1f} mm "
+                               f"(limit {thr:.1f} mm) — a take in other units than it says, or a skeleton of another subject?",
+                               tuple(bad.tolist())))
+
+    # bone lengths against the subject's extent
+    if np.isfinite(extent):
+        lim = limits.bone_extent * extent
+        off = np.linalg.norm(sk.offset, axis=1)
+        end = np.linalg.norm(sk.end_site, axis=1)
+        for s in range(S):
+            for what, L in (("bone", off[s] if parent[s] >= 0 else 0.0), ("end site", end[s])):
+                if np.isfinite(L) and L > lim:
+                    out.append(Finding("bone_length", _joint_name(names, parent, s),
+                                       f"{what} of {names[s]} is {L:.0f} mm long, more than the subject's marker extent "
+                                       f"({extent:.0f} mm)"))
+        # every joint's distance to the markers of its two segments (rest pose; rigid, so every frame)
+        lim_j = limits.joint_extent * extent
+        for s in np.flatnonzero(parent >= 0):
+            cols = np.flatnonzero((seg == s) | (seg == parent[s]))
+            if not cols.size:
+                continue
+            at_rest = sk.origin[seg[cols]] + sk.marker_local[cols]
+            d = float(np.linalg.norm(at_rest - sk.origin[s], axis=1).min())
+            if d > lim_j:
+                out.append(Finding("joint_far", _joint_name(names, parent, s),
+                                   f"joint {_joint_name(names, parent, s)} is {d:.0f} mm from the nearest marker of its two "
+                                   f"segments, more than half the subject's marker extent ({extent:.0f} mm)"))
+
+    if F >= 2:
+        pos = segment_origins(motion)  # (F, S, 3)
+        jstep = np.linalg.norm(np.diff(pos, axis=0), axis=-1)  # (F-1, S)
+        with np.errstate(invalid="ignore"):
+            mstep = np.linalg.norm(np.diff(points, axis=0), axis=-1)  # (F-1, M), NaN unless seen in both
+        any_m = np.where(np.isfinite(mstep), mstep, -np.inf).max(1) if mstep.size else np.full(F - 1, -np.inf)
+        seg_max = np.full((F - 1, S), -np.inf)
+        for s in range(S):
+            cols = np.flatnonzero(seg == s)
+            if cols.size:
+                seg_max[:, s] = np.where(np.isfinite(mstep[:, cols]), mstep[:, cols], -np.inf).max(1)
+        # local rotation steps
+        R = motion.rot
+        rel = np.empty((F - 1, S))
+        for s in range(S):
+            Ls = R[:, s] if parent[s] < 0 else np.swapaxes(R[:, parent[s]], -1, -2) @ R[:, s]
+            c = (np.einsum("fij,fij->f", Ls[1:], Ls[:-1]) - 1.0) / 2.0
+            rel[:, s] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+        for s in range(S):
+            both = seg_max[:, s] if parent[s] < 0 else np.maximum(seg_max[:, s], seg_max[:, parent[s]])
+            fastest = np.where(np.isfinite(both), both, any_m)  # the joint's own segments (for flips)
+            judged = np.isfinite(any_m) & np.isfinite(jstep[:, s])
+            bad = np.flatnonzero(judged & (jstep[:, s] > any_m + limits.step_margin_mm)) + 1
+            jn = _joint_name(names, parent, s)
+            if bad.size:
+                k = bad[np.argmax(jstep[bad - 1, s])] - 1
+                out.append(Finding("joint_step", jn,
+                                   f"joint {jn} moves more in one frame than the fastest marker plus "
+                                   f"{limits.step_margin_mm:g} mm in {bad.size} frames (worst: {jstep[k, s]:.0f} mm at frame "
+                                   f"{k + 1}, fastest marker {any_m[k]:.0f} mm, its segments' {fastest[k]:.0f} mm)",
+                                   tuple(bad.tolist())))
+            # a flip: a large turn in one frame that the markers do not show
+            cols = np.flatnonzero((seg == s) | ((seg == parent[s]) if parent[s] >= 0 else False))
+            size = 0.0
+            if cols.size:
+                loc = sk.origin[seg[cols]] + sk.marker_local[cols]
+                size = float(np.linalg.norm(loc - sk.origin[s], axis=1).max())
+            flip = (rel[:, s] > limits.flip_deg) & ~(np.isfinite(fastest) & (fastest > 0.1 * max(size, 1.0)))
+            bad = np.flatnonzero(flip) + 1
+            if bad.size:
+                out.append(Finding("rotation_flip", jn,
+                                   f"joint {jn} turns by more than {limits.flip_deg:g} degrees in one frame in {bad.size} "
+                                   f"frames (up to {rel[:, s].max():.0f} degrees) while its markers hardly move",
+                                   tuple(bad.tolist())))
+
+    for s, note in (joint_notes or {}).items():
+        jn = _joint_name(names, parent, s)
+        out.append(Finding("not_converged", jn, f"joint {jn}: the centre fit did not converge ({note})"))
+    return out
+
+
+def joint_notes(motion: Motion) -> dict[int, str]:
+    """Joints (by child segment) whose centre fit did not converge, with the solver's reason."""
+    joints = motion.skeleton.joints
+    if joints is None or joints.topology is None:
+        return {}
+    per = joints.info.get("per_joint") or []
+    out = {}
+    for e, (a, b) in enumerate(joints.topology.edges.tolist()):
+        note = str(per[e].get("note", "")) if e < len(per) else ""
+        if "converge" in note:
+            out[int(b)] = note
+    return out
+
+
+def add_to_report(report: dict, findings: list[Finding]) -> None:
+    """Record the findings in a report: ``report["checks"]`` (one dict each) and one warning each."""
+    report["checks"] = [f.as_dict() for f in findings]
+    ws = report.setdefault("warnings", [])
+    for f in findings:
+        fr = frames_text(f.frames)
+        ws.append(f"check {f.check}: {f.message}" + (f"; frames {fr}" if fr else ""))
+
+
+def strict_error(findings: list[Finding], source: str | None):
+    """The DataError (exit code 4) that ``--strict`` raises when checks failed (None when none did)."""
+    from .errors import DataError
+
+    if not findings:
+        return None
+    by: dict[str, list[str]] = {}
+    for f in findings:
+        by.setdefault(f.check, []).append(f.name)
+    what = "; ".join(f"{c}: {', '.join(n[:6])}{' …' if len(n) > 6 else ''}" for c, n in by.items())
+    return DataError(f"{len(findings)} output checks failed ({what}) — nothing written (--strict); "
+                     "run without --strict to write the result and read the report's checks", source)

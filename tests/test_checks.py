@@ -1,0 +1,206 @@
+"""Checks before writing (mocapskel.checks): each case that once passed silently, and invariants.
+
+Regression tests are named after what broke; the property tests fit generated
+chains (hypothesis) and check the invariants every written BVH must keep.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mocapskel import checks, pipeline
+from mocapskel.artifacts import markers_of
+from mocapskel.cli.main import cli
+from mocapskel.io.bvh import bvh_rot_to_lab, bvh_to_lab, forward_kinematics, read_bvh, write_bvh
+from mocapskel.io.markers import write_markers
+from mocapskel.io.skeleton import write_skeleton
+from mocapskel.synth.chains import hang_chain
+from mocapskel.synth.human import human_take
+
+
+def _fit(markers):
+    return pipeline.fit(markers, pipeline.make_params())
+
+
+def _names(findings, check):
+    return {f.name for f in findings if f.check == check}
+
+
+@pytest.fixture(scope="module")
+def human_fit():
+    """A generated human (1 mm noise, 1 mm soft tissue), 10 s at 120 Hz."""
+    take = human_take(rng=np.random.default_rng(11), n_frames=1200, noise_mm=1.0, soft_tissue_mm=1.0)
+    return take, _fit(take.markers)
+
+
+@pytest.fixture(scope="module")
+def chain_fit():
+    take = hang_chain((4, 3, 3), 300, rng=np.random.default_rng(3), link_length=300.0)
+    res = _fit(take.markers)
+    return res.motion, markers_of(res.motion).points
+
+
+def test_a_good_human_fit_passes_every_check(human_fit) -> None:
+    _, res = human_fit
+    assert res.report["checks"] == []
+    assert not any(w.startswith("check ") for w in res.report["warnings"])
+
+
+def test_micrometre_take_labelled_mm_warns() -> None:
+    """A noise-free take scaled by 1,000 (micrometres in a file that says mm) fitted with exit 0 and no warning.
+
+    (A generated chain: the same as the human of the report, and fast to fit.)"""
+    take = hang_chain((4, 3, 3, 3), 600, rng=np.random.default_rng(2), link_length=300.0)
+    for k in (1000.0, 0.001):  # micrometres, and metres, labelled mm
+        res = _fit(replace(take.markers, points=take.markers.points * k))
+        assert "units" in {c["check"] for c in res.report["checks"]}, (k, res.report["checks"])
+        assert any(w.startswith("check units:") and "other units" in w for w in res.report["warnings"])
+
+
+def test_a_take_in_mm_passes_the_units_check(human_fit) -> None:
+    assert "units" not in {c["check"] for c in human_fit[1].report["checks"]}
+
+
+@pytest.fixture(scope="module")
+def subject_skel(tmp_path_factory):
+    d = tmp_path_factory.mktemp("subject")
+    cal = human_take(rng=np.random.default_rng(6), n_frames=1200, subject_seed=1, noise_mm=1.0)
+    res = _fit(cal.markers)
+    write_skeleton(d / "subject.skel", res.motion.skeleton)
+    return d
+
+
+def test_solve_with_a_subject_of_08_the_size_warns(subject_skel) -> None:
+    """`solve` with another subject's skeleton (same labels, 0.8 of the size): exit 0, 79 mm residual, no warning."""
+    from mocapskel.io.skeleton import read_skeleton
+
+    skel = read_skeleton(subject_skel / "subject.skel")
+    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8, noise_mm=1.0)
+    res = pipeline.solve(small.markers, skel, pipeline.make_params())
+    assert "residual" in {c["check"] for c in res.report["checks"]}
+    # the control: the same subject solves without a residual warning
+    same = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, noise_mm=1.0)
+    ok = pipeline.solve(same.markers, skel, pipeline.make_params())
+    assert "residual" not in {c["check"] for c in ok.report["checks"]}
+
+
+def test_strict_solve_of_another_subject_exits_4_and_writes_nothing(subject_skel) -> None:
+    d = subject_skel
+    small = human_take(rng=np.random.default_rng(5), n_frames=1200, subject_seed=1, scale=0.8, noise_mm=1.0)
+    write_markers(d / "small.trc", small.markers)
+    args = ["solve", str(d / "small.trc"), "--skeleton", str(d / "subject.skel"), "-o", str(d / "s.bvh"),
+            "--report", str(d / "s.json")]
+    r = CliRunner().invoke(cli, args + ["--strict"])
+    assert r.exit_code == 4, r.output
+    assert "output checks failed" in r.output and "residual" in r.output
+    assert not (d / "s.bvh").exists() and not (d / "s.json").exists()
+    r = CliRunner().invoke(cli, args)  # without --strict: written, with the warnings
+    assert r.exit_code == 0, r.output
+    rep = json.loads((d / "s.json").read_text())
+    assert any(c["check"] == "residual" for c in rep["checks"])
+
+
+def test_joint_pop_and_flip_name_the_joint_and_frame(chain_fit) -> None:
+    """A joint that pops (its segment turned half a turn for one frame) while the markers hardly move."""
+    motion, pts = chain_fit
+    assert checks.run_checks(motion, pts) == []
+    s = int(np.flatnonzero(motion.skeleton.parent >= 0)[0])
+    rot = motion.rot.copy()
+    flip = np.diag([1.0, -1.0, -1.0])  # 180 degrees about x
+    rot[150, s] = rot[150, s] @ flip
+    bad = replace(motion, rot=rot)
+    found = checks.run_checks(bad, pts)
+    sk = motion.skeleton
+    kids = [k for k in range(len(sk.names)) if sk.parent[k] == s]
+    jn = f"{sk.names[sk.parent[s]]}-{sk.names[s]}"
+    flips = {f.name: f.frames for f in found if f.check == "rotation_flip"}
+    assert jn in flips and set(flips[jn]) == {150, 151}
+    steps = {f.name: f.frames for f in found if f.check == "joint_step"}
+    for k in kids:  # the child joints of the turned segment pop at frames 150 and 151
+        assert set(steps[f"{sk.names[s]}-{sk.names[k]}"]) == {150, 151}
+
+
+def test_five_metre_shin_warns(chain_fit) -> None:
+    """A leaf joint slid 5 m along a direction its markers do not fix: a bone longer than the subject, a joint far from its markers."""
+    motion, pts = chain_fit
+    sk = motion.skeleton
+    leaf = int(next(s for s in range(len(sk.names)) if sk.parent[s] >= 0 and s not in sk.parent))
+    origin = sk.origin.copy()
+    origin[leaf] += np.array([5000.0, 0.0, 0.0])
+    local = sk.marker_local.copy()
+    local[sk.marker_segment == leaf] -= np.array([5000.0, 0.0, 0.0])  # its markers stay where they are
+    bad = replace(motion, skeleton=replace(sk, origin=origin, marker_local=local))
+    found = checks.run_checks(bad, pts)
+    jn = f"{sk.names[sk.parent[leaf]]}-{sk.names[leaf]}"
+    assert jn in _names(found, "bone_length")
+    assert jn in _names(found, "joint_far")
+    assert "bone_length" in {f.check for f in found} and all(f.name == jn for f in found if f.check == "joint_far")
+
+
+def test_unconverged_joint_fit_warns(chain_fit) -> None:
+    motion, pts = chain_fit
+    j = motion.skeleton.joints
+    per = [dict(p) for p in j.info["per_joint"]]
+    per[0]["note"] = "iteration limit reached before convergence"
+    sk = replace(motion.skeleton, joints=replace(j, info={**j.info, "per_joint": per}))
+    bad = replace(motion, skeleton=sk)
+    notes = checks.joint_notes(bad)
+    child = int(j.topology.edges[0][1])
+    assert list(notes) == [child]
+    assert {f.check for f in checks.run_checks(bad, pts, joint_notes=notes)} == {"not_converged"}
+
+
+def test_frames_text_lists_runs() -> None:
+    assert checks.frames_text([3, 4, 5, 9, 11, 12]) == "3-5, 9, 11-12"
+    assert checks.frames_text([]) == ""
+    assert checks.frames_text(list(range(0, 40, 2)), most=3) == "0, 2, 4 (+17 more runs)"
+
+
+# --------------------------------------------------------------------------- invariants (hypothesis)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(counts=st.lists(st.integers(3, 4), min_size=2, max_size=4), seed=st.integers(0, 10_000),
+       up=st.sampled_from(["y", "z"]), noise=st.sampled_from([0.0, 0.5]))
+def test_fit_invariants_on_generated_chains(tmp_path, counts, seed, up, noise) -> None:
+    """FK of the written BVH puts every marker within noise of where it was seen; no bone longer
+    than the marker extent, no joint farther than half of it from its markers, no joint step above
+    the fastest marker's plus 20 mm, no flip."""
+    take = hang_chain(tuple(counts), 240, rng=np.random.default_rng(seed), link_length=300.0, noise=noise)
+    params = pipeline.make_params(up=up, units="mm")
+    res = pipeline.fit(take.markers, params)
+    assert res.report["checks"] == [], res.report["checks"]
+    b = res.bvh
+    path = tmp_path / f"c{seed}{up}.bvh"
+    write_bvh(path, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    skel, root, local, _ = read_bvh(path)
+    pos, G = forward_kinematics(skel, root, local, with_rot=True)
+    # BVH joints are depth first: map back to the motion's segments by name
+    sk = res.motion.skeleton
+    idx = [skel.names.index(n) for n in sk.names]
+    pos_lab = bvh_to_lab(pos[:, idx], up, "mm")
+    G_lab = bvh_rot_to_lab(G[:, idx], up)
+    pts = markers_of(res.motion).points
+    seg = sk.marker_segment
+    on = seg >= 0
+    pred = pos_lab[:, seg[on]] + np.einsum("fmij,mj->fmi", G_lab[:, seg[on]], sk.marker_local[on])
+    err = np.linalg.norm(pred - pts[:, on], axis=-1)
+    rms = float(np.sqrt(np.nanmean(err**2)))
+    assert rms < 3.0 * noise + 0.5, rms
+
+
+def test_strict_fit_of_a_micrometre_take_exits_4_and_writes_nothing(tmp_path) -> None:
+    take = hang_chain((4, 3, 3, 3), 600, rng=np.random.default_rng(2), link_length=300.0)
+    src = tmp_path / "micro.trc"
+    write_markers(src, replace(take.markers, points=take.markers.points * 1000.0))
+    out, rep = tmp_path / "o.bvh", tmp_path / "o.json"
+    r = CliRunner().invoke(cli, ["fit", str(src), "-o", str(out), "--report", str(rep), "--no-cache", "--strict"])
+    assert r.exit_code == 4, r.output
+    assert "units" in r.output and not out.exists() and not rep.exists()
+    assert not list(tmp_path.glob(".*part"))
