@@ -141,6 +141,22 @@ def affinity(std: np.ndarray, sigma: float) -> np.ndarray:
     return W
 
 
+#: A take whose sampled markers' smallest spread across a plane is below this fraction of their
+#: largest is flat: no 3-D joint.
+FLAT_FRAC = 1e-3
+
+
+def _flat(X: np.ndarray) -> bool:
+    """Whether the points ``X`` (n, 3) all lie in one plane (relative to their extent)."""
+    s = np.linalg.svd(X - X.mean(0), compute_uv=False)
+    return bool(s[2] < FLAT_FRAC * s[0])
+#: A skin-and-noise level above this fraction of the median distance std means no two markers are
+#: rigid together (each marker's most rigid partner is across a joint).
+NO_PAIR_FRAC = 0.25
+#: Distances that vary by more than this fraction of the median marker distance are not those of
+#: one rigid body, however alike they vary.
+RIGID_FRAC = 0.02
+
 #: A marker whose distances to its partners vary by less than this fraction of the median
 #: marker distance is a point computed from a model, not a measured marker.
 COMPUTED_FRAC = 1e-4
@@ -429,13 +445,27 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
     level = skin_level(pooled, COMPUTED_FRAC * size)
     tau = max(params.rigid_k * level, COMPUTED_FRAC * size)  # exact data: rigid to rounding
-    if k is None and not (np.nanpercentile(off, 95) > tau if np.isfinite(off).any() else False):
+    p95 = float(np.nanpercentile(off, 95)) if np.isfinite(off).any() else 0.0
+    if k is None and not p95 > tau and not p95 > RIGID_FRAC * size:
         raise DataError(
             f"all markers move as one rigid body (95 % of marker distances vary by less than {tau:.3g} mm,"
             f" {params.rigid_k:g} times the take's own skin and noise level)"
             " — nothing moves relative to anything, so there is no joint to find",
             markers.source or None,
         )
+    if params.n_segments is None:
+        X = markers.points[samplings[0]][np.isfinite(markers.points[samplings[0]]).all(-1)]
+        if len(X) >= 3 and _flat(X):
+            raise DataError("the take is flat: every marker lies in one plane — joints need 3-D data", markers.source or None)
+        offd = pooled[~np.eye(iu.size, dtype=bool)]
+        offd = offd[np.isfinite(offd)]
+        if offd.size and level > NO_PAIR_FRAC * float(np.median(offd)):
+            # the "level" is itself the std across joints: no two markers ride on one body
+            raise DataError(
+                f"every segment carries a single marker ({iu.size} segments) — a joint needs at least 3 markers"
+                " on its two segments: put 2 or 3 markers on each segment",
+                markers.source or None,
+            )
     sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
     split = []
     if k is None:
