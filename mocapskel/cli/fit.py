@@ -27,7 +27,7 @@ from .options import (
 log = logging.getLogger("mocapskel")
 
 
-def write_markers_out(path, motion, input_path, read, labels=None, bvh=None) -> None:
+def write_markers_out(path, motion, input_path, read, bvh=None, labels=None) -> None:
     """The take plus one virtual marker per joint centre, as C3D or TRC.
 
     From a C3D take to a C3D file: the input file itself with the joint points
@@ -157,7 +157,7 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
                 write_skeleton(out.stage(o["skeleton"]), r.motion.skeleton, source=r.report["input"]["file"])
             if markers_out:
                 labels = r.motion.skeleton.labels if several else None
-                write_markers_out(out.stage(o["markers"]), r.motion, input, make_read(exclude, include), labels, b)
+                write_markers_out(out.stage(o["markers"]), r.motion, input, make_read(exclude, include), b, labels)
             if html_path:
                 from .report import write_html_report
 

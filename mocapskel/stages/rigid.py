@@ -48,6 +48,9 @@ class Params:
     far: float = 0.5
     """A joint is implausible when it sits farther than this fraction of the subject's marker
     extent from the nearest marker of one of its two segments."""
+    hold_tolerance: float = 0.05
+    """The held refinement is kept when its marker rms is at most this fraction above the unheld
+    one's (the slide was free), or when the unheld one leaves a joint implausibly far."""
     slide: float = 0.1
     """...or when the refinement moved it, relative to the markers of one of its segments, by
     more than this fraction of that extent from where the joints stage put it (a slide along
@@ -293,10 +296,14 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     bad = sorted(set(far_joints(out, params.far)) | set(slid_joints(skel, out, params.slide))) if "refined" in out.info else []
     if bad and params.joint_prior > 0:
         held = refine_once(skel, params, centres, params.joint_prior, set(bad))
-        info = dict(held.info)
-        info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
-                               held_because=[skel.names[c] for c in bad])
-        out = replace(held, info=info)
+        free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
+        # held, the markers fit about as well: the joints slid along what the markers do not fix.
+        # A clearly worse fit: the markers needed the move (a rough start put right), so it stays
+        if held_rms <= (1.0 + params.hold_tolerance) * free_rms or far_joints(out, params.far):
+            info = dict(held.info)
+            info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
+                                   held_because=[skel.names[c] for c in bad], marker_rms_mm_unheld=free_rms)
+            out = replace(held, info=info)
     return out
 
 
