@@ -136,7 +136,7 @@ def test_average_linkage_heights_match_scipy():
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
-    from mocapskel.stages.segment import average_linkage_heights, rigid_count
+    from mocapskel.stages.segment import average_linkage_heights, rigid_groups
 
     rng = np.random.default_rng(3)
     for M in (2, 3, 7, 30, 90):
@@ -145,20 +145,4 @@ def test_average_linkage_heights_match_scipy():
         Z = linkage(squareform(D, checks=False), method="average")
         np.testing.assert_allclose(average_linkage_heights(D), np.sort(Z[:, 2]), rtol=1e-12)
         for t in np.quantile(Z[:, 2], [0.1, 0.5, 0.9]):
-            assert rigid_count(D, t) == fcluster(Z, t=t, criterion="distance").max()
-
-
-def test_split_nonrigid_separates_what_is_not_rigid_and_leaves_rigid_groups():
-    from mocapskel.stages.segment import split_nonrigid
-
-    # markers 0-2 rigid together (std 1 mm), 3 moves against them (std 20 mm), 4-5 rigid (std 2)
-    std = np.full((6, 6), 30.0)
-    std[np.ix_([0, 1, 2], [0, 1, 2])] = 1.0
-    std[3, :3] = std[:3, 3] = 20.0
-    std[np.ix_([4, 5], [4, 5])] = 2.0
-    np.fill_diagonal(std, 0.0)
-    lab, parts = split_nonrigid(np.array([0, 0, 0, 0, 1, 1]), std, 8.0)
-    assert len(parts) == 1 and parts[0].tolist() == [0, 1, 2, 3]
-    assert len(set(lab[:3])) == 1 and lab[3] not in lab[:3] and lab[4] == lab[5] == 1
-    same, none = split_nonrigid(np.array([0, 0, 0, 1, 2, 2]), std, 8.0)  # already rigid: unchanged
-    assert same.tolist() == [0, 0, 0, 1, 2, 2] and none == []
+            assert rigid_groups(D, t).max() + 1 == fcluster(Z, t=t, criterion="distance").max()

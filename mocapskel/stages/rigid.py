@@ -239,41 +239,46 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
     return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
 
 
+def _rest_markers(skel: Skeleton) -> np.ndarray:
+    """(M, 3) every marker's rest-pose position (NaN for markers on no segment or without an offset)."""
+    seg = skel.marker_segment
+    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
+    pos = np.full(skel.marker_local.shape, np.nan)
+    pos[ok] = skel.origin[seg[ok]] + skel.marker_local[ok]
+    return pos
+
+
+def _extent(pos: np.ndarray) -> float:
+    """The largest distance between two of the markers ``pos`` (M, 3) (NaN rows left out); 0 for fewer than 2."""
+    P = pos[np.isfinite(pos).all(1)]
+    return float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max()) if len(P) > 1 else 0.0
+
+
 def far_joints(skel: Skeleton, far: float) -> list[int]:
     """Segments whose joint to their parent sits implausibly far from its markers, in the rest pose.
 
     Far: farther than ``far`` times the subject's marker extent (the largest distance between two
     markers at rest) from the nearest marker of the parent or of the child segment.
     """
-    seg = skel.marker_segment
-    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
-    pos = np.full(skel.marker_local.shape, np.nan)
-    pos[ok] = skel.origin[seg[ok]] + skel.marker_local[ok]
-    P = pos[ok]
-    if len(P) < 2:
+    pos = _rest_markers(skel)
+    ok = np.isfinite(pos).all(1)
+    if ok.sum() < 2:
         return []
-    ext = float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max())
+    lim = far * _extent(pos)
     out = []
     for c in np.flatnonzero(skel.parent >= 0):
         for s_ in (int(skel.parent[c]), int(c)):
-            m = pos[ok & (seg == s_)]
-            if len(m) and float(np.linalg.norm(m - skel.origin[c], axis=1).min()) > far * ext:
+            m = pos[ok & (skel.marker_segment == s_)]
+            if len(m) and float(np.linalg.norm(m - skel.origin[c], axis=1).min()) > lim:
                 out.append(int(c))
                 break
     return out
 
 
-def _extent(skel: Skeleton) -> float:
-    seg = skel.marker_segment
-    ok = (seg >= 0) & np.isfinite(skel.marker_local).all(1)
-    P = skel.origin[seg[ok]] + skel.marker_local[ok]
-    return float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max()) if len(P) > 1 else 0.0
-
-
 def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
     """Segments whose joint to their parent moved, relative to the markers of the parent or of the child,
     by more than ``slide`` times the subject's marker extent between two fits (rest-pose axes)."""
-    lim = slide * _extent(before)
+    lim = slide * _extent(_rest_markers(before))
     out = []
     for c in np.flatnonzero(before.parent >= 0):
         p = int(before.parent[c])
@@ -293,13 +298,16 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
     """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
     from its markers, or slid far from where the joints stage put it."""
     out = refine_once(skel, params, centres, 0.0)
-    bad = sorted(set(far_joints(out, params.far)) | set(slid_joints(skel, out, params.slide))) if "refined" in out.info else []
+    if "refined" not in out.info:
+        return out
+    far = far_joints(out, params.far)
+    bad = sorted(set(far) | set(slid_joints(skel, out, params.slide)))
     if bad and params.joint_prior > 0:
         held = refine_once(skel, params, centres, params.joint_prior, set(bad))
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
         # A clearly worse fit: the markers needed the move (a rough start put right), so it stays
-        if held_rms <= (1.0 + params.hold_tolerance) * free_rms or far_joints(out, params.far):
+        if held_rms <= (1.0 + params.hold_tolerance) * free_rms or far:
             info = dict(held.info)
             info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
                                    held_because=[skel.names[c] for c in bad], marker_rms_mm_unheld=free_rms)

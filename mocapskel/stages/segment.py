@@ -174,57 +174,19 @@ def _median_distance(d: np.ndarray) -> float:
     return float(np.median(v)) if v.size else float("nan")
 
 
-def rigid_count(std: np.ndarray, rigid_mm: float) -> int:
-    """Number of groups whose markers' distances vary by at most ``rigid_mm`` on average.
-
-    Average-linkage agglomerative clustering of the distance stds, cut at
-    ``rigid_mm``: the fewest groups that are each rigid within the tolerance.
-    """
-    M = std.shape[0]
-    if M < 2:
-        return M
-    D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
-    D = 0.5 * (D + D.T)
-    # average linkage never merges lower than an earlier merge, so the groups left at the cut
-    # are the markers less the merges at or below it
-    return int(M - np.count_nonzero(average_linkage_heights(D) <= rigid_mm))
-
-
-def rigid_groups(std: np.ndarray, rigid_mm: float, complete: bool = False) -> np.ndarray:
+def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
     """(M,) labels 0.. of the average-linkage groups of ``std`` (M, M) cut at ``rigid_mm``.
 
-    Each group's markers vary in distance by at most ``rigid_mm`` on average
-    (the groups :func:`rigid_count` counts), numbered by their first marker.
+    Each group's markers vary in distance by at most ``rigid_mm`` on average;
+    groups are numbered by their first marker.
     """
     M = std.shape[0]
     D = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
     D = 0.5 * (D + D.T)
-    _, root = _average_linkage(D, rigid_mm, complete)
+    _, root = _average_linkage(D, rigid_mm)
     _, lab = np.unique(root, return_inverse=True)
     first = {}
     return np.array([first.setdefault(int(g), len(first)) for g in lab.reshape(-1)], dtype=int) if M else lab
-
-
-def split_nonrigid(labels: np.ndarray, std: np.ndarray, rigid_mm: float) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Split every group of ``labels`` (M,) that is not rigid within ``rigid_mm`` into its rigid subgroups.
-
-    A group is rigid when its average-linkage dendrogram on the distance stds
-    ``std`` (M, M) joins all its markers at or below ``rigid_mm``
-    (:func:`rigid_groups`); otherwise its subgroups at that cut become groups
-    of their own (the first keeps the label). Returns the new labels and, for
-    every group split, the indices of its markers.
-    """
-    lab = np.array(labels, dtype=int)
-    parts = []
-    for g in np.unique(lab):
-        idx = np.flatnonzero(lab == g)
-        if idx.size < 2:
-            continue
-        sub = rigid_groups(std[np.ix_(idx, idx)], rigid_mm)
-        if sub.max() > 0:
-            parts.append(idx)
-            lab[idx[sub > 0]] = lab.max() + sub[sub > 0]
-    return lab, parts
 
 
 def average_linkage_heights(D: np.ndarray) -> np.ndarray:
@@ -237,10 +199,8 @@ def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     return _average_linkage(D, np.inf)[0]
 
 
-def _average_linkage(D: np.ndarray, stop: float, complete: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index)).
-
-    ``complete``: complete linkage instead (a cluster's distance is its largest pair's)."""
+def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray]:
+    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index))."""
     D = np.array(D, dtype=float)
     M = D.shape[0]
     np.fill_diagonal(D, np.inf)
@@ -252,10 +212,7 @@ def _average_linkage(D: np.ndarray, stop: float, complete: bool = False) -> tupl
         if not D[i, j] <= stop:
             break
         heights.append(D[i, j])
-        if complete:  # the merged cluster's largest distances
-            row = np.maximum(D[i], D[j])
-        else:  # the merged cluster's mean distances
-            row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])
+        row = (size[i] * D[i] + size[j] * D[j]) / (size[i] + size[j])  # the merged cluster's mean distances
         D[i], D[:, i] = row, row
         D[i, i] = np.inf
         D[j], D[:, j] = np.inf, np.inf
