@@ -708,6 +708,11 @@ def write_c3d(path: str | os.PathLike, markers: Markers) -> None:
             params["TRIAL"][name] = {  # 16-bit integer words (low, high), as the C3D manual has them
                 "type": _swig.INT, "value": np.array(words), "description": "frame number (low, high word)", "is_locked": False
             }
+    write_ezc3d(c, path)
+
+
+def write_ezc3d(c, path: str | os.PathLike) -> None:
+    """Write the ezc3d object ``c`` to ``path`` atomically (temporary file, then rename)."""
     with atomic_path(path) as tmp:
         tmp_c3d = tmp + ".c3d"  # ezc3d's Python writer appends .c3d to any other name
         try:

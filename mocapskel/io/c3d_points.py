@@ -11,14 +11,13 @@ there is one: the data blocks move).
 """
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Sequence
 
 import numpy as np
 
 from ..errors import InputError
-from .atomic import atomic_path
+from .c3d import write_ezc3d
 from .markers import unit_factor
 
 __all__ = ["FrameCountMismatch", "add_points"]
@@ -141,12 +140,5 @@ def add_points(
     meta["camera_masks"] = np.concatenate([masks, np.zeros((7, K, F), dtype=bool)], axis=1)
     _append_strings(point, "LABELS", out_labels, P, "Point labels")
     _append_strings(point, "DESCRIPTIONS", [str(d)[:_MAX_TEXT] for d in descriptions], P, "Point descriptions")
-    with atomic_path(dst) as tmp:
-        tmp_c3d = tmp + ".c3d"  # ezc3d's Python writer appends .c3d to any other name
-        try:
-            c.write(tmp_c3d)
-            os.replace(tmp_c3d, tmp)
-        finally:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp_c3d)
+    write_ezc3d(c, dst)
     return out_labels

@@ -246,6 +246,18 @@ class _Subject:
     seg_factor: np.ndarray  # (S,) length factor of each segment (part factor times scale)
 
 
+def _check_take_args(n_frames, rate: float, scale: float, noise_mm: float, soft_tissue_mm: float) -> int:
+    """The frame count as an int, after checking a generated take's arguments (ValueError if wrong)."""
+    n_frames = int(n_frames)
+    if n_frames < 2:
+        raise ValueError(f"n_frames must be at least 2, got {n_frames}")
+    if not rate > 0 or not scale > 0:
+        raise ValueError(f"rate and scale must be positive, got rate={rate}, scale={scale}")
+    if noise_mm < 0 or soft_tissue_mm < 0:
+        raise ValueError("noise_mm and soft_tissue_mm must be non-negative")
+    return n_frames
+
+
 def _marker_counts(markers_per_segment: int | Sequence[int] | Mapping[str, int] | None) -> tuple[int, ...]:
     if markers_per_segment is None:
         counts = [DEFAULT_MARKERS_PER_SEGMENT[n] for n in SEGMENTS]
@@ -616,13 +628,7 @@ def human_take(
     """
     if motion not in MOTIONS:
         raise ValueError(f"motion must be one of {MOTIONS}, got {motion!r}")
-    n_frames = int(n_frames)
-    if n_frames < 2:
-        raise ValueError(f"n_frames must be at least 2, got {n_frames}")
-    if not rate > 0 or not scale > 0:
-        raise ValueError(f"rate and scale must be positive, got rate={rate}, scale={scale}")
-    if noise_mm < 0 or soft_tissue_mm < 0:
-        raise ValueError("noise_mm and soft_tissue_mm must be non-negative")
+    n_frames = _check_take_args(n_frames, rate, scale, noise_mm, soft_tissue_mm)
     counts = _marker_counts(markers_per_segment)
     seeds = rng.integers(0, 2**63 - 1, size=3)
     sseed = int(seeds[0]) if subject_seed is None else int(subject_seed)

@@ -87,6 +87,7 @@ import numpy as np
 
 from ..artifacts import Markers
 from .human import (
+    _check_take_args,
     _HINGE,
     HINGES,
     JOINT_NAMES,
@@ -824,13 +825,7 @@ def realistic_take(
         raise ValueError(f"motion must be one of {REALISTIC_MOTIONS}, got {motion!r}")
     if skin not in SKINS:
         raise ValueError(f"skin must be one of {SKINS}, got {skin!r}")
-    n_frames = int(n_frames)
-    if n_frames < 2:
-        raise ValueError(f"n_frames must be at least 2, got {n_frames}")
-    if not rate > 0 or not scale > 0:
-        raise ValueError(f"rate and scale must be positive, got rate={rate}, scale={scale}")
-    if noise_mm < 0 or soft_tissue_mm < 0:
-        raise ValueError("noise_mm and soft_tissue_mm must be non-negative")
+    n_frames = _check_take_args(n_frames, rate, scale, noise_mm, soft_tissue_mm)
     if markers_per_segment is not None and markerset != "default":
         raise ValueError("markers_per_segment applies to the default marker set only")
     slack = np.array(hinge_slack_deg, dtype=float)
