@@ -25,7 +25,7 @@ demo: venv
 	@echo "demo: BVH and reports written to out/"
 
 test: venv
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
 
 bench: venv
 	$(BIN)/python -m bench.run_all

@@ -78,3 +78,40 @@ def test_unlabelled_arm_takes_give_their_authors_grouping(rel: str, want: list) 
     seg = pipeline.run_until(p, "segment").artifact
     got = sorted(sorted(int(i) for i in seg.members(s)) for s in range(seg.n_segments))
     assert got == sorted(want)
+
+
+def test_knee_trial_gives_thigh_shank_and_a_still_body() -> None:
+    """A functional knee trial (biobuddy, 73 markers: rigid plates and anatomical markers): only the right
+    knee moves, so the take supports three segments: the femur's markers, the shank's with the foot's
+    (the ankle hardly moves), and the still body. Its marker plates are rigid to 0.2 mm among themselves,
+    but the still body's parts sway against each other by a few mm: that does not locate a joint, and
+    the body must not be cut into its plates (26 segments before)."""
+    p = REALDATA / "biobuddy/functional_trials/right_knee.c3d"
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — the knee-trial segmentation test did NOT run")
+    from mocapskel import pipeline
+
+    groups = [set(g) for g in pipeline.run_until(p, "segment").artifact.info["groups"]]
+    femur = {"RGT", "RLFE", "RMFE", "RTHI1", "RTHI2", "RTHI3"}  # trochanter, epicondyles, thigh plate
+    shank = {"RLM", "RLEG1", "RLEG2", "RLEG3"}  # lateral malleolus, shank plate
+    assert len(groups) == 3
+    assert femur in groups
+    assert any(shank <= g and not g & femur for g in groups)
+    assert any({"LASIS", "RASIS", "C7", "LLEG1", "LARM1"} <= g for g in groups)
+
+
+@pytest.mark.parametrize("rel", [
+    "biobuddy/functional_trials/static_lower_body.c3d",
+    "biobuddy/lower_limb_calibration/anatomical_posture.c3d",
+    "kineticstoolkit/sample_static.c3d",
+    "opensim-models/subject01_static.trc",
+])
+def test_static_trials_are_refused_as_one_rigid_body(rel: str, tmp_path: Path) -> None:
+    """A standing still subject sways by a few mm: no joint to find, exit 4 and the reason."""
+    p = REALDATA / rel
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — the static-trial test did NOT run")
+    out = tmp_path / "o.bvh"
+    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(out), "--no-cache", "-q"])
+    assert r.exit_code == 4, r.stderr
+    assert "all markers move as one rigid body" in r.stderr and not out.exists()

@@ -146,3 +146,16 @@ def test_average_linkage_heights_match_scipy():
         np.testing.assert_allclose(average_linkage_heights(D), np.sort(Z[:, 2]), rtol=1e-12)
         for t in np.quantile(Z[:, 2], [0.1, 0.5, 0.9]):
             assert rigid_groups(D, t).max() + 1 == fcluster(Z, t=t, criterion="distance").max()
+
+
+def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_other() -> None:
+    from mocapskel.stages.segment import merge_still_groups
+
+    # four groups: 0 and 1 vary against each other by 2 mm, 2 against both by 20 mm, 3 alone by 40 mm
+    lab = np.array([0, 0, 1, 1, 1, 2, 2, 3])
+    G = np.array([[0.3, 2.0, 20.0, 40.0], [2.0, 0.3, 20.0, 40.0], [20.0, 20.0, 0.3, 40.0], [40.0, 40.0, 40.0, 0.0]])
+    std = G[lab][:, lab]
+    np.fill_diagonal(std, 0.0)
+    assert merge_still_groups(std, lab, 3.0).tolist() == [0, 0, 0, 0, 0, 1, 1, 2]
+    assert merge_still_groups(std, lab, 1.0).tolist() == lab.tolist()
+    assert merge_still_groups(std, lab, 25.0).tolist() == [0, 0, 0, 0, 0, 0, 0, 1]

@@ -20,7 +20,7 @@ from ..artifacts import Markers, Segments
 from ..errors import DataError
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 3
+VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,11 @@ class Params:
     """A marker joins or pairs only with markers within this many times the median
     extent of the rigid groups (markers far apart that move in step — an arm swinging
     with the opposite leg — are not one body)."""
+    motion_frac: float = 0.005
+    """Distances that vary by less than this fraction of the median marker distance never tell
+    two segments apart, however rigid the take's markers are to each other: a body part that moves
+    its markers against another's by less than that (a trunk swaying while one knee is exercised,
+    rigid marker plates on one bone) does not locate a joint between them."""
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
     seed: int = 0
@@ -199,12 +204,15 @@ def average_linkage_heights(D: np.ndarray) -> np.ndarray:
     return _average_linkage(D, np.inf)[0]
 
 
-def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray]:
-    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index))."""
+def _average_linkage(D: np.ndarray, stop: float, size: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """UPGMA merges while they are at most ``stop`` high: (their heights, each point's cluster (a member index)).
+
+    ``size`` : how many points each row already stands for (its distances the mean over them); default 1.
+    """
     D = np.array(D, dtype=float)
     M = D.shape[0]
     np.fill_diagonal(D, np.inf)
-    size = np.ones(M)
+    size = np.ones(M) if size is None else np.array(size, dtype=float)
     root = np.arange(M)
     heights = []
     for _ in range(M - 1):
@@ -219,6 +227,21 @@ def _average_linkage(D: np.ndarray, stop: float) -> tuple[np.ndarray, np.ndarray
         size[i] += size[j]
         root[root == j] = i
     return np.array(heights), root
+
+
+def merge_still_groups(std: np.ndarray, labels: np.ndarray, stop: float) -> np.ndarray:
+    """Go on with average linkage from the groups ``labels`` (M,) while groups vary against each other
+    by at most ``stop`` on average; returns the labels numbered by first marker."""
+    G = int(labels.max()) + 1
+    S = np.nan_to_num(std, nan=np.nanmax(std) if np.isfinite(std).any() else 1.0)
+    S = 0.5 * (S + S.T)
+    onehot = np.zeros((labels.size, G))
+    onehot[np.arange(labels.size), labels] = 1.0
+    size = onehot.sum(0)
+    D = (onehot.T @ S @ onehot) / np.outer(size, size)
+    _, root = _average_linkage(D, stop, size)
+    first: dict[int, int] = {}
+    return np.array([first.setdefault(int(root[g]), len(first)) for g in labels], dtype=int)
 
 
 def skin_level(std: np.ndarray, floor: float = 0.0) -> float:
@@ -403,10 +426,12 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     level = skin_level(pooled, COMPUTED_FRAC * size)
     tau = max(params.rigid_k * level, COMPUTED_FRAC * size)  # exact data: rigid to rounding
     p95 = float(np.nanpercentile(off, 95)) if np.isfinite(off).any() else 0.0
-    if k is None and not p95 > tau and not p95 > RIGID_FRAC * size:
+    still = max(tau, params.motion_frac * size)
+    if k is None and not p95 > still and not p95 > RIGID_FRAC * size:
         raise DataError(
-            f"all markers move as one rigid body (95 % of marker distances vary by less than {tau:.3g} mm,"
-            f" {params.rigid_k:g} times the take's own skin and noise level)"
+            f"all markers move as one rigid body (95 % of marker distances vary by less than {still:.3g} mm,"
+            f" {params.rigid_k:g} times the take's own skin and noise level or {params.motion_frac:g} of the"
+            " median marker distance)"
             " — nothing moves relative to anything, so there is no joint to find",
             markers.source or None,
         )
@@ -436,6 +461,8 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         ext = [_extent(mean_d, np.flatnonzero(lab == g)) for g in range(lab.max() + 1) if (lab == g).sum() > 1]
         reach = params.reach * float(np.median(ext)) if ext else np.inf
         lab, moves = pair_lone_markers(pooled, mean_d, lab, params.join_k * tau, params.free_k * tau, reach)
+        if params.motion_frac * size > tau:
+            lab = merge_still_groups(pooled, lab, params.motion_frac * size)
         split = [[markers.labels[iu[i]], how] for i, how in moves]
         si = 0
         cost = spread_cost(pooled, lab)
