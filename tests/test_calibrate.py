@@ -141,9 +141,9 @@ def test_rigid_stage_keeps_the_start_that_fits_better():
                           np.isnan(joints.centres[:, [e for e, m in enumerate(joints.method) if m != "jmv"]]))
     skel = rigid.run(joints)
     info = skel.info["refined"]
-    starts = info["marker_rms_mm_starts"]
-    assert info["marker_rms_mm_after"] == min(v for v in starts.values() if v is not None)
-    assert info["start"] in starts
+    starts = info["marker_rms_mm_starts"]  # after a few iterations from each start
+    assert info["start"] in starts and starts[info["start"]] == min(v for v in starts.values() if v is not None)
+    assert info["marker_rms_mm_after"] <= starts[info["start"]]
     one = rigid.run(replace(joints, alt_centres=None))
     assert "start" not in one.info["refined"]
     assert info["marker_rms_mm_after"] <= one.info["refined"]["marker_rms_mm_after"]

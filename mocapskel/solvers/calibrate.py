@@ -222,11 +222,12 @@ def refine_skeleton(
     *,
     ref_frame: int = 0,
     iterations: int = 30,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
     joint_prior: float = 0.0,
     prior_joints: set | None = None,
+    anchor: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -246,6 +247,8 @@ def refine_skeleton(
         barely moves) the prior decides, so the joint stays near its markers instead of sliding
         away at no cost. 0: no prior.
     prior_joints : the child segments whose joints the prior holds (None: all).
+    anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
+        from another (a refinement of it); None: the start.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -264,7 +267,14 @@ def refine_skeleton(
     d0 = d.copy()
     k_hold = float(max(pr.w.sum(), 1.0))  # mm^-2: a 1 mm move along a held axis costs as much as 1 mm on every marker
     A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
-    g0 = _pack(pr, d, l)
+    if anchor is None:
+        g0 = _pack(pr, d, l)
+    else:
+        a_origin, a_local = (np.asarray(x, dtype=float) for x in anchor)
+        d_a = np.zeros((S, 3))
+        for c in pr.kids:
+            d_a[c] = a_origin[c] - a_origin[parent[c]]
+        g0 = _pack(pr, d_a, a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
 
     def total(p_, R_, d_, l_) -> float:
@@ -275,7 +285,7 @@ def refine_skeleton(
         return c
 
     c0 = cost = total(p, R, d, l)
-    lam = 1e-4
+    lam, nu = 1e-4, 2.0
     # gauge: the root's origin is fixed in the root by one of its joints (or markers)
     rk0 = [c for c in pr.kids if parent[c] == pr.root]
     fix_g = np.zeros(ng, dtype=bool)
@@ -352,18 +362,27 @@ def refine_skeleton(
             for m in pr.used:
                 l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
             c1 = total(p1, R1, d1, l1)
+            # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
+            # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
+            pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
+            for (Hff, _, bf), sl in zip(blocks, chunks):
+                h = df[sl]
+                pred += float(np.einsum("fi,fi->", h, (lam * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - bf))
             if c1 < cost:
                 break
-            lam *= 4.0
+            lam *= nu  # Nielsen's update: a growing factor while steps fail
+            nu *= 2.0
             if lam > 1e8:
                 c1 = cost
                 break
         if c1 >= cost:
             break
         rel = (cost - c1) / max(cost, 1e-300)
+        rho = (cost - c1) / pred if pred > 0 else 1.0
         p, R, d, l, cost = p1, R1, d1, l1, c1
         system = None
-        lam = max(lam / 3.0, 1e-9)
+        lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
+        nu = 2.0
         if rel < tol:
             break
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)

@@ -438,7 +438,7 @@ def jmv_joint(
     alpha: float = 0.0,
     init: ArrayLike | str | None = None,
     max_iter: int = 100,
-    tol: float = 1e-12,
+    tol: float = 1e-6,
 ) -> JointFit:
     """Joint between two segments by joint-marker-variance optimisation.
 
@@ -466,7 +466,7 @@ def jmv_joint(
         Iteration limit.
     tol : float
         Stop when an accepted step lowers Q by less than ``tol`` times Q (or
-        moves no joint by more than ``tol`` times the data's size).
+        moves no joint by more than ``STEP_TOL`` times the data's size).
 
     Returns
     -------
@@ -538,6 +538,11 @@ def jmv_joint(
     return JointFit(centre, q, n_iter, ok, "" if ok else "iteration limit reached before convergence", None, radii)
 
 
+#: An accepted step that moves no joint by more than this fraction of the data's size ends the fit
+#: (rounding level: exact data converge to it).
+STEP_TOL = 1e-12
+
+
 def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max_iter: int, tol: float):
     """Levenberg-Marquardt on (c (F,3), rho (M,)). Returns c, Q, n_iter, converged, dbar."""
     F, M, _ = pts.shape
@@ -590,7 +595,7 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
                 dq = q - q_new
                 c, q, d, diff, dbar = c_new, q_new, d_new, diff_new, dbar_new
                 mu = max(mu / 3.0, 1e-12)
-                if dq <= tol * max(q - const, 0.0) or step <= tol * scale or q - const <= (1e-14 * scale) ** 2:
+                if dq <= tol * max(q - const, 0.0) or step <= STEP_TOL * scale or q - const <= (1e-14 * scale) ** 2:
                     converged = True
             else:
                 mu *= 4.0
@@ -790,7 +795,7 @@ def pair_cost(
                     best, centre = float(fit.cost), fit.centre
     if tried and np.isfinite(best):
         return out(best, centre)
-    fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-8)
+    fit = jmv_joint(a, b, alpha=alpha, max_iter=50, tol=1e-6)
     if not np.isfinite(fit.cost):
         return out(float(fit.cost), fit.centre)
     # the joint is free in every frame (3 unknowns a frame): of n markers' distances only n - 3

@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 6
+VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,9 @@ class Params:
     refine_frames: int = 300
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
-    refine_iterations: int = 60
+    refine_iterations: int = 30
+    trial_iterations: int = 8
+    """With two starts (see :func:`run`), the iterations each gets before the better is chosen."""
     joint_prior: float = 0.01
     """Weight (per frame) of the prior that holds each joint where the joints stage put it
     relative to the markers of its two segments (see
@@ -126,31 +128,34 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
         if joints.alt_centres is None:
             skel = refine(skel, params, joints.centres)
         else:
-            # a second start (the joints stage's framework trajectories): the fit of lower cost wins;
-            # the two are independent, so they run side by side on the cores
-            def from_start(which: int) -> Skeleton | None:
-                if which == 0:
-                    return refine(skel, params, joints.centres)
+            # a second start (the joints stage's framework trajectories): both are refined for a few
+            # iterations side by side on the cores, and the better is refined to the end
+            def trial(which: int) -> tuple[Skeleton, Skeleton] | None:
+                c = joints.centres if which == 0 else joints.alt_centres
                 try:
-                    return refine(_fit(joints, joints.alt_centres, rest, parent, parent_edge, order, params), params,
-                                  joints.alt_centres)
+                    st = skel if which == 0 else _fit(joints, c, rest, parent, parent_edge, order, params)
                 except DataError:
                     return None
+                return st, refine_once(st, params, c, 0.0, iterations=params.trial_iterations)
 
-            one, two = run_blocks(from_start, [0, 1])
-            if "refined" in one.info:
-                a = one.info["refined"]["marker_rms_mm_after"]
-                b = two.info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                bad_one, bad_two = bool(far_joints(one, params.far)), two is None or bool(far_joints(two, params.far))
+            one, two = run_blocks(trial, [0, 1])
+            if "refined" in one[1].info:
+                a = one[1].info["refined"]["marker_rms_mm_after"]
+                b = two[1].info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
+                bad_one, bad_two = bool(far_joints(one[1], params.far)), two is None or bool(far_joints(two[1], params.far))
                 if bad_one != bad_two:  # never a lower residual bought with a joint off its markers
-                    win = two if bad_one else one
+                    win = 1 if bad_one else 0
                 else:
-                    win = two if b is not None and b < a else one
-                info = dict(win.info)
-                info["refined"] = dict(info["refined"], start="framework" if win is two else "joints",
-                                       marker_rms_mm_starts={"joints": a, "framework": b})
-                one = replace(win, info=info)
-            skel = one
+                    win = 1 if b is not None and b < a else 0
+                st, part = (one, two)[win]
+                out = refine(st, params, (joints.centres, joints.alt_centres)[win], part)
+                info = dict(out.info)
+                info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
+                                       marker_rms_mm_starts={"joints": a, "framework": b},
+                                       trial_iterations=params.trial_iterations)
+                skel = replace(out, info=info)
+            else:
+                skel = one[1]
     return _with_lengths(skel)
 
 
@@ -294,16 +299,30 @@ def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
     return out
 
 
-def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) -> Skeleton:
+def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None) -> Skeleton:
     """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
-    from its markers, or slid far from where the joints stage put it."""
-    out = refine_once(skel, params, centres, 0.0)
+    from its markers, or slid far from where the joints stage put it.
+
+    partial : a refinement of ``skel`` stopped early, to go on from.
+    """
+    if partial is None or "refined" not in partial.info:
+        out = refine_once(skel, params, centres, 0.0)
+    else:
+        done = partial.info["refined"]["iterations"]
+        out = refine_once(partial, params, centres, 0.0, anchor=skel,
+                          iterations=max(params.refine_iterations - done, 1))
+        info = dict(out.info)
+        info["refined"] = dict(info["refined"], iterations=done + out.info["refined"]["iterations"],
+                               marker_rms_mm_before=partial.info["refined"]["marker_rms_mm_before"])
+        out = replace(out, info=info)
     if "refined" not in out.info:
         return out
     far = far_joints(out, params.far)
     bad = sorted(set(far) | set(slid_joints(skel, out, params.slide)))
     if bad and params.joint_prior > 0:
-        held = refine_once(skel, params, centres, params.joint_prior, set(bad))
+        # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
+        # joints where the joints stage put them
+        held = refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel)
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
         # A clearly worse fit: the markers needed the move (a rough start put right), so it stays
@@ -316,12 +335,16 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None) ->
 
 
 def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float,
-                prior_joints: set | None = None) -> Skeleton:
+                prior_joints: set | None = None, anchor: Skeleton | None = None,
+                iterations: int | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
     See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
     skeleton from the per-segment fits. The refined skeleton keeps the poses
     of those frames (IK starts from them where markers alone cannot).
+
+    anchor : the unrefined skeleton when ``skel`` is a refinement of it: the fit goes on from
+    ``skel``'s own poses, and the prior holds joints where ``anchor`` has them.
     """
     from .ik import _centres_by_edges, solve
 
@@ -332,11 +355,18 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))
     centres = _centres_by_edges(skel, skel.joints.centres if centres is None else centres)
-    start = solve(skel, pts[use], centres[use])
-    hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
+    if anchor is not None and skel.pose_frames is not None and np.array_equal(skel.pose_frames, use):
+        rot, root = skel.pose_rot, skel.pose_root  # a refinement's own poses on these frames
+        hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot) if params.hold_hinges else {}
+    else:
+        start = solve(skel, pts[use], centres[use])
+        rot, root = start.rot, start.root_pos
+        hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
-                          start.rot, start.root_pos, ref_frame=ref, iterations=params.refine_iterations,
-                          hold_along=hold, joint_prior=prior, prior_joints=prior_joints)
+                          rot, root, ref_frame=ref,
+                          iterations=params.refine_iterations if iterations is None else iterations,
+                          hold_along=hold, joint_prior=prior, prior_joints=prior_joints,
+                          anchor=None if anchor is None else (anchor.origin, anchor.marker_local))
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],

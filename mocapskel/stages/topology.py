@@ -21,7 +21,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 4
+VERSION = 5
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
