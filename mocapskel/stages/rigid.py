@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 7
+VERSION = 8
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,12 @@ class Params:
     """...or when the refinement moved it, relative to the markers of one of its segments, by
     more than this fraction of that extent from where the joints stage put it (a slide along
     a direction the markers do not fix; the refinement corrects rough starts by less)."""
+    joint_depth: bool = True
+    """A hinge with a marker over its axis (a knee, elbow or ankle marker) has its centre put one
+    limb half-width inside that marker, along the axis (see :func:`deepen_joints`)."""
+    hinge_ratio: float = 0.6
+    """A joint is a hinge when the spread of its relative rotations about their second axis is at
+    most this fraction of the spread about the first."""
     hold_hinges: bool = True
     """Joints the joints stage placed as hinges keep their position along the hinge axis
     in the refinement (the markers hardly fix it; the joints stage put it in the plane
@@ -156,6 +162,8 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                 skel = replace(out, info=info)
             else:
                 skel = one[1]
+    if params.joint_depth and skel.pose_rot is not None:
+        skel = deepen_joints(skel, params.hinge_ratio)
     return _with_lengths(skel)
 
 
@@ -373,6 +381,121 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
                        "hinges_held": [skel.names[c] for c in hold]}
     return replace(skel, origin=res.origin, marker_local=res.marker_local, info=info,
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
+
+
+def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
+    """(F, 3) rotation vectors of the rotations ``rel`` (F, 3, 3) about their chordal mean."""
+    U, _, Vt = np.linalg.svd(rel.sum(0))
+    M = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    D = np.swapaxes(M, 0, 1)[None] @ rel
+    cos = np.clip((np.trace(D, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    ang = np.arccos(cos)
+    w = np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], axis=1)
+    s = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
+    return w * s[:, None]
+
+
+def _limb_radius(skel: Skeleton, s: int, pos: np.ndarray, skip: set) -> float | None:
+    """Median distance of segment ``s``'s markers (but ``skip``) from its bone line (its joint to the
+    mean of its child joints), over markers along its middle 70 %; None for a root or a leaf."""
+    kids = np.flatnonzero(skel.parent == s)
+    if skel.parent[s] < 0 or kids.size == 0:
+        return None
+    a, b = skel.origin[s], skel.origin[kids].mean(0)
+    n = float(np.linalg.norm(b - a))
+    if n <= 0:
+        return None
+    u = (b - a) / n
+    r = []
+    for m in np.flatnonzero(skel.marker_segment == s):
+        if m in skip or not np.isfinite(pos[m]).all():
+            continue
+        v = pos[m] - a
+        t = float(v @ u)
+        if 0.15 * n < t < 0.85 * n:
+            r.append(float(np.linalg.norm(v - t * u)))
+    return float(np.median(r)) if r else None
+
+
+#: A limb's half-width is at most this fraction of its length (adult thigh, shank, upper arm and
+#: forearm: 0.10-0.15).
+LIMB_WIDTH = 0.2
+
+
+def _bone(skel: Skeleton, s: int) -> float:
+    """Length from segment ``s``'s joint to the mean of its child joints (0 for a root or a leaf)."""
+    kids = np.flatnonzero(skel.parent == s)
+    if skel.parent[s] < 0 or kids.size == 0:
+        return 0.0
+    return float(np.linalg.norm(skel.origin[kids].mean(0) - skel.origin[s]))
+
+
+def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
+    """Hinges with a marker over their axis get their centre one limb half-width inside that marker.
+
+    A knee, elbow or ankle marker sits on the skin over the flexion axis; the joint centre lies on
+    that axis, about half the joint's width deeper. Along the axis the markers hardly fix the
+    centre (the fit leaves it where the distance penalty puts it, near the marker). For a joint
+    whose relative rotations (the refinement's poses) turn about one axis (spread about the second
+    axis at most ``hinge_ratio`` of the first) and a marker of its two segments that sits within
+    half a limb half-width of that axis and of the joint, the centre is moved along the axis, away
+    from the marker towards the subject's middle, to one limb half-width from it. The half-width is
+    the median distance of the two segments' other markers from their bone lines (markers sit on
+    the skin). Two markers over the axis on either side (a wrist bar) put it between them.
+    Each segment keeps its markers where they were; the move is along the axis the joint turns
+    about, so the poses still fit.
+    """
+    R = skel.pose_rot
+    pos = _rest_markers(skel)
+    ok_m = np.isfinite(pos).all(1)
+    if ok_m.sum() < 3:
+        return skel
+    centre = pos[ok_m].mean(0)
+    origin, local = skel.origin.copy(), skel.marker_local.copy()
+    moved = {}
+    for c in np.flatnonzero(skel.parent >= 0):
+        p = int(skel.parent[c])
+        rel = np.swapaxes(R[:, p], 1, 2) @ R[:, c]
+        rel = rel[np.isfinite(rel).all((1, 2))]
+        if len(rel) < 10:
+            continue
+        _, sv, Vt = np.linalg.svd(_relative_rotvecs(rel), full_matrices=False)
+        if not sv[0] > 0 or sv[1] > hinge_ratio * sv[0]:
+            continue
+        ax = Vt[0]
+        J = origin[c]
+        near = [int(m) for m in np.flatnonzero(ok_m & np.isin(skel.marker_segment, [p, c]))]
+        t = {m: float((pos[m] - J) @ ax) for m in near}
+        off = {m: float(np.linalg.norm(pos[m] - J - t[m] * ax)) for m in near}
+        over = sorted(near, key=lambda m: off[m])
+        if not over:
+            continue
+        radii = [r for s_ in (p, int(c)) if (r := _limb_radius(skel, s_, pos, set(over[:1]))) is not None]
+        if not radii or max(radii) > 2.0 * min(radii):
+            continue  # no limb on either side, or two limbs that disagree: no half-width to trust
+        r = float(np.mean(radii))
+        if r > LIMB_WIDTH * min(_bone(skel, s_) for s_ in (p, int(c)) if _bone(skel, s_) > 0):
+            continue  # a half-width no limb has
+        on = [m for m in over if off[m] <= 0.5 * r and abs(t[m]) <= 1.5 * r]
+        if not on:
+            continue
+        two = [m for m in on if np.sign(t[m]) != np.sign(t[on[0]])]
+        if two:
+            shift = 0.5 * (t[on[0]] + t[two[0]])  # between a marker on either side
+        else:
+            m = on[0]
+            inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
+            shift = t[m] + inward * r
+        d = shift * ax
+        origin[c] = J + d
+        local[skel.marker_segment == c] -= d
+        moved[skel.names[c]] = round(float(abs(shift)), 1)
+    if not moved:
+        return skel
+    info = dict(skel.info, deepened=moved)
+    if "refined" in info:  # the report's refinement section names them
+        info["refined"] = dict(info["refined"], deepened_mm=moved)
+    return replace(skel, origin=origin, marker_local=local, info=info)
 
 
 def _hinge_axes(skel: Skeleton, rot: np.ndarray) -> dict[int, np.ndarray]:
