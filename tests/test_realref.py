@@ -115,3 +115,20 @@ def test_static_trials_are_refused_as_one_rigid_body(rel: str, tmp_path: Path) -
     r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(out), "--no-cache", "-q"])
     assert r.exit_code == 4, r.stderr
     assert "all markers move as one rigid body" in r.stderr and not out.exists()
+
+
+def test_gait_take_with_one_marker_pelvis_pieces_has_no_bone_of_metres(tmp_path: Path) -> None:
+    """Eb015pr (c3d.org gait sample, rigid thigh and shank plates, skin markers on the pelvis): a pelvis
+    marker that hardly moves against its neighbours became a one-marker segment whose sphere fit put
+    its joint with the thigh 13 m away (a 13 m thigh bone). Such a marker now joins its group, and a
+    one-marker joint keeps JMV's centre where the sphere fit's costs more."""
+    p = REALDATA / "c3d_org_samples/Eb015pr.c3d"
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — the one-marker-segment test did NOT run")
+    rep = tmp_path / "r.json"
+    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--report", str(rep), "--no-cache", "-q"])
+    assert r.exit_code == 0, r.stderr
+    d = json.loads(rep.read_text())
+    failing = {c["check"] for c in d["checks"]}
+    assert not failing & {"bone_length", "joint_far"}, d["checks"]
+    assert max(b["length_mm"] for b in d["bones"] if b.get("length_mm") is not None) < 1000.0

@@ -159,3 +159,20 @@ def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_othe
     assert merge_still_groups(std, lab, 3.0).tolist() == [0, 0, 0, 0, 0, 1, 1, 2]
     assert merge_still_groups(std, lab, 1.0).tolist() == lab.tolist()
     assert merge_still_groups(std, lab, 25.0).tolist() == [0, 0, 0, 0, 0, 0, 0, 1]
+
+
+def test_absorb_lone_markers_by_the_farthest_member_when_asked():
+    from mocapskel.stages.segment import absorb_lone_markers
+
+    # marker 4 alone: against group 0 (markers 0, 1) it varies by 2 and 9 mm, against group 1
+    # (markers 2, 3) by 30 and 40 mm
+    std = np.full((5, 5), 50.0)
+    np.fill_diagonal(std, 0.0)
+    std[0, 1] = std[1, 0] = std[2, 3] = std[3, 2] = 0.5
+    std[4, [0, 1, 2, 3]] = std[[0, 1, 2, 3], 4] = [2.0, 9.0, 30.0, 40.0]
+    mean_d = np.full((5, 5), 100.0)
+    lab = np.array([0, 0, 1, 1, 2])
+    assert absorb_lone_markers(std, mean_d, lab, 6.0, 200.0)[0].tolist() == [0, 0, 1, 1, 0]  # mean 5.5
+    assert absorb_lone_markers(std, mean_d, lab, 6.0, 200.0, nearest=True)[0].tolist() == lab.tolist()  # max 9
+    assert absorb_lone_markers(std, mean_d, lab, 10.0, 200.0, nearest=True)[0].tolist() == [0, 0, 1, 1, 0]
+    assert absorb_lone_markers(std, mean_d, lab, 10.0, 50.0)[0].tolist() == lab.tolist()  # out of reach

@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 10
+VERSION = 11
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -136,13 +136,21 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             if done[e]:
                 continue
             na, nb = groups[a].shape[1], groups[b].shape[1]
+            fit = None
             if max(na, nb) >= 3 and min(na, nb) == 1:
                 c, side = sphere_centre(groups[a], groups[b])
                 if side is not None:
-                    centres[:, e], methods[e], done[e] = c, "sphere", True
-                    per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
-                    continue
-            fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
+                    # kept unless JMV, with the distance penalty, does better: a marker that hardly moves
+                    # on its sphere leaves the radius free (metres), the penalty keeps the joint near
+                    fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
+                    both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
+                    if not (np.isfinite(fit.centre).any()
+                            and joint_cost(fit.centre[diag], both, alpha=alpha) < joint_cost(c[diag], both, alpha=alpha)):
+                        centres[:, e], methods[e], done[e] = c, "sphere", True
+                        per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
+                        continue
+            if fit is None:
+                fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:

@@ -20,7 +20,7 @@ from ..artifacts import Markers, Segments
 from ..errors import DataError
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 4
+VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -350,9 +350,29 @@ def pair_lone_markers(
         else:
             break
     # still alone: a marker that hardly moves against its nearest group is skin on it
+    lab, more = absorb_lone_markers(std, mean_d, lab, tau_free, reach)
+    return lab, moves + more
+
+
+def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
+                        reach: float, nearest: bool = False) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """Each marker alone in its group that varies against its nearest group of several markers (mean
+    std, all of them within ``reach``; with ``nearest``: against every member, the nearest of them
+    within ``reach``) by at most ``tau_free`` joins that group ("absorbed").
+    Returns the labels numbered by first marker and the moves."""
+    lab = np.array(labels, dtype=int)
+    M = lab.size
+    S = np.where(np.eye(M, dtype=bool), np.inf, np.nan_to_num(std, nan=np.inf))
+    near = np.nan_to_num(mean_d, nan=np.inf) <= reach
+    moves: list[tuple[int, str]] = []
     sizes = np.bincount(lab)
     for m in [i for i in range(M) if sizes[lab[i]] == 1]:
-        costs = [(group_cost(m, lab, g), g) for g in np.unique(lab) if g != lab[m] and (lab == g).sum() > 1]
+        costs = []
+        for g in np.unique(lab):
+            mem = np.flatnonzero(lab == g)
+            mem = mem[mem != m]
+            if g != lab[m] and mem.size > 1 and (near[m, mem].any() if nearest else near[m, mem].all()):
+                costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g)))
         if costs:
             c, g = min(costs)
             if c <= tau_free:
@@ -463,6 +483,15 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         lab, moves = pair_lone_markers(pooled, mean_d, lab, params.join_k * tau, params.free_k * tau, reach)
         if params.motion_frac * size > tau:
             lab = merge_still_groups(pooled, lab, params.motion_frac * size)
+        if ext:
+            # a marker alone is a segment only if its joint can be found: moving by d against a group,
+            # at a distance R (a segment's size) from its joint, it sweeps a cap of angle d / R, on which
+            # a sphere fit's radius is known to about level / (d / R)^2 — no better than R itself unless
+            # d > sqrt(level R)
+            # (the largest segments, a pelvis or a trunk, are two or three times the median group's size)
+            lab, more = absorb_lone_markers(pooled, mean_d, lab, float(np.sqrt(level * np.median(ext))), 2.0 * reach,
+                                            nearest=True)
+            moves += more
         split = [[markers.labels[iu[i]], how] for i, how in moves]
         si = 0
         cost = spread_cost(pooled, lab)
