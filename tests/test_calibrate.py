@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
@@ -190,3 +191,23 @@ def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():
     # each segment keeps its markers where they were: only joints moved
     rest = lambda s: s.origin[np.maximum(s.marker_segment, 0)] + s.marker_local  # noqa: E731
     assert np.allclose(rest(deep), rest(flat), atol=1e-9)
+
+
+def test_two_marker_segment_whose_joints_are_never_seen_together_still_gets_a_shape():
+    """Regression (a wheelchair take): a forearm of two markers between a one-marker hand and a one-marker
+    device; each joint is known only while its one-marker neighbour is seen, never both at once. The
+    shape places each at its distances along and from the marker axis (the turn about it is free)."""
+    rng = np.random.default_rng(0)
+    F = 200
+    body = np.array([[0.0, 0.0, 0.0], [250.0, 0.0, 0.0], [-40.0, 30.0, 0.0], [300.0, 0.0, -60.0]])
+    Rs = Rotation.random(F, random_state=1).as_matrix()
+    obs = np.einsum("fij,pj->fpi", Rs, body) + rng.normal(0.0, 0.1, (F, 4, 3))
+    obs[: F // 2, 3] = np.nan
+    obs[F // 2 :, 2] = np.nan
+    shape = rigid._place_about_axis(obs, 0, np.vstack([body[:2], np.full((2, 3), np.nan)]))
+    assert np.isfinite(shape).all()
+    u = np.array([1.0, 0.0, 0.0])
+    for p in (2, 3):
+        d, t = shape[p] - shape[0], body[p] - body[0]
+        assert abs(d @ u - t @ u) < 1.0
+        assert abs(np.linalg.norm(d - (d @ u) * u) - np.linalg.norm(t - (t @ u) * u)) < 1.0

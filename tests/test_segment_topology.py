@@ -176,3 +176,24 @@ def test_absorb_lone_markers_by_the_farthest_member_when_asked():
     assert absorb_lone_markers(std, mean_d, lab, 6.0, 200.0, nearest=True)[0].tolist() == lab.tolist()  # max 9
     assert absorb_lone_markers(std, mean_d, lab, 10.0, 200.0, nearest=True)[0].tolist() == [0, 0, 1, 1, 0]
     assert absorb_lone_markers(std, mean_d, lab, 10.0, 50.0)[0].tolist() == lab.tolist()  # out of reach
+
+
+def test_walking_thighs_join_the_pelvis_not_each_other():
+    """Realistic CMU marker set, walking: both hips flex about one mediolateral axis, so the two thighs
+    "join" cheaply on it, and the hip sits far from a two-marker thigh's markers (mid-thigh and knee)
+    while a hanging arm's elbow is near it. Each thigh group must hang on the pelvis group (the truth's
+    parent of both thighs), as the generator's tree has it."""
+    from mocapskel.synth.presets import make, realistic
+
+    take = make(realistic(seed=1, frames=600, motion="walk", markerset="cmu41"))
+    topo = pipeline.run_until(take.markers, "topology").artifact
+    seg, truth = topo.segments, take.truth
+    names = list(truth.segment_names)
+
+    def true_segment(s: int) -> str:
+        ids = [int(truth.marker_segment[i]) for i in seg.members(s)]
+        return names[max(set(ids), key=ids.count)]
+
+    edges = {frozenset((true_segment(a), true_segment(b))) for a, b in topo.edges.tolist()}
+    assert frozenset(("Pelvis", "LThigh")) in edges and frozenset(("Pelvis", "RThigh")) in edges
+    assert frozenset(("LThigh", "RThigh")) not in edges

@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 8
+VERSION = 9
 
 
 @dataclass(frozen=True)
@@ -195,9 +195,18 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
         shape, R, t, rms = procrustes_shape(obs, ref_frame=rest_i, iters=params.iters)
         if not np.isfinite(shape).all():
             shape = _fallback_shape(obs, rest_i, shape)
+        if not np.isfinite(shape).all() and use.size < F:
+            # the subsample sees this segment too rarely with its joints: every frame
+            obs = np.concatenate([pts[:, mids], centres[:, eids]], axis=1)
+            shape, R, t, rms = procrustes_shape(obs, ref_frame=rest, iters=params.iters)
+            if not np.isfinite(shape).all():
+                shape = _fallback_shape(obs, rest, shape)
+        if not np.isfinite(shape).all() and mids.size == 2:
+            shape = _place_about_axis(obs, rest, shape)
         if not np.isfinite(shape).all():
             raise DataError(
-                f"segment {s} (markers {', '.join(mk.labels[i] for i in mids)}) is never seen well enough to fit",
+                f"segment {s} (markers {', '.join(mk.labels[i] for i in mids)}) is never seen well enough to fit"
+                " — its markers are too rarely seen together with its joints; leave them out with --exclude",
                 mk.source or None,
             )
         noise[s] = float(np.sqrt(np.nanmean(rms**2))) if np.isfinite(rms).any() else np.nan
@@ -560,6 +569,54 @@ def _end_site(local: np.ndarray) -> np.ndarray:
         return np.array([0.0, 0.0, 10.0])
     u = c / n
     return u * max(float((local @ u).max()), n)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1.0 + 1e-12:  # opposite: half a turn about any perpendicular
+        w = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        w /= np.linalg.norm(w)
+        return 2.0 * np.outer(w, w) - np.eye(3)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def _place_about_axis(obs: np.ndarray, rest: int, shape: np.ndarray) -> np.ndarray:
+    """A two-marker segment's joints that are never seen together (nor with a third point), placed
+    about its marker axis: each at its median distance along and from the axis, turned about it as
+    seen at its visible frame nearest ``rest``. Two markers do not fix the turn about their axis, so
+    the joints' relative turn is a choice, not a measurement (IK turns the segment to each joint)."""
+    out = shape.copy()
+    if not (np.isfinite(out[0]).all() and np.isfinite(out[1]).all()):
+        return out
+    u = out[1] - out[0]
+    if not np.linalg.norm(u) > 0:
+        return out
+    u = u / np.linalg.norm(u)
+    vis = np.isfinite(obs).all(-1)
+    for p in range(2, obs.shape[1]):
+        if np.isfinite(out[p]).all():
+            continue
+        fr = np.flatnonzero(vis[:, 0] & vis[:, 1] & vis[:, p])
+        if not fr.size:
+            continue
+        a = obs[fr, 1] - obs[fr, 0]
+        ok = np.linalg.norm(a, axis=1) > 0
+        if not ok.any():
+            continue
+        fr, a = fr[ok], a[ok] / np.linalg.norm(a[ok], axis=1)[:, None]
+        d = obs[fr, p] - obs[fr, 0]
+        along = np.einsum("fi,fi->f", d, a)
+        radial = np.linalg.norm(d - along[:, None] * a, axis=1)
+        k = int(np.argmin(np.abs(fr - rest)))
+        perp = _rotation_between(a[k], u) @ (d[k] - along[k] * a[k])
+        perp = perp - (perp @ u) * u
+        n = np.linalg.norm(perp)
+        side = perp / n if n > 0 else np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        side = side / np.linalg.norm(side)
+        out[p] = out[0] + float(np.median(along)) * u + float(np.median(radial)) * side
+    return out
 
 
 def _fallback_shape(obs: np.ndarray, rest: int, shape: np.ndarray) -> np.ndarray:

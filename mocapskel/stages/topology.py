@@ -21,7 +21,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 5
+VERSION = 6
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -42,7 +42,9 @@ class Params:
     alpha_k: float = 8.0
     nearer: float = 0.7
     """A pair's joint is implausible when some third segment's nearest marker is closer to it
-    than this fraction of the farther of its own two segments' nearest markers."""
+    than this fraction of the nearer of its own two segments' nearest markers (the farther is no
+    measure: a hip sits far from a thigh's markers at mid-thigh and knee, and a hanging arm's
+    elbow is nearer)."""
     elsewhere_factor: float = 10.0
     """Cost factor of such a pair (kept finite: the tree may still need it)."""
 
@@ -146,7 +148,7 @@ def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int
     """Whether the joint ``centre`` (K, 3) of segments ``a`` and ``b`` sits nearer to another segment.
 
     Each segment's distance is the median over frames of its nearest marker's distance to the joint;
-    the joint belongs elsewhere when another segment's is below ``ratio`` times the larger of ``a``'s
+    the joint belongs elsewhere when another segment's is below ``ratio`` times the smaller of ``a``'s
     and ``b``'s. pts : (K, M, 3) the markers on the same frames.
     """
     if centre is None or not np.isfinite(centre).any():
@@ -158,7 +160,7 @@ def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int
         dm = d[:, mem]
         ok = np.isfinite(dm).any(axis=1)
         near.append(float(np.median(np.nanmin(dm[ok], axis=1))) if ok.any() else np.inf)
-    own = max(near[a], near[b])
+    own = min(near[a], near[b])
     others = [near[s] for s in range(len(members)) if s not in (a, b)]
     return bool(others) and bool(np.isfinite(own)) and min(others) < ratio * own
 
