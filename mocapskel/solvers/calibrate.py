@@ -222,7 +222,7 @@ def refine_skeleton(
     *,
     ref_frame: int = 0,
     iterations: int = 30,
-    tol: float = 1e-4,
+    tol: float = 1e-5,
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
     joint_prior: float = 0.0,

@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 9
+VERSION = 10
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ class Params:
     refine_frames: int = 300
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
-    refine_iterations: int = 30
+    refine_iterations: int = 60
     trial_iterations: int = 8
     """With two starts (see :func:`run`), the iterations each gets before the better is chosen."""
     joint_prior: float = 0.01
@@ -245,20 +245,29 @@ REFINE_FULL_SEGMENTS = 15
 REFINE_STRIDE = 4
 
 
-def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None) -> int:
+#: Markers up to which the refinement uses all its frames; beyond, fewer (see below).
+REFINE_FULL_MARKERS = 48
+
+
+def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None, n_markers: int | None = None) -> int:
     """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
-    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); and at most a quarter of a
-    take of ``take_frames`` (at least 100).
+    fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); likewise as (48 / M)^2 above
+    48 markers; and at most a quarter of a take of ``take_frames`` (at least 100).
 
     An iteration costs about S^3 per frame (a segment's pose couples with every other's through
-    the constant offsets): this keeps a skeleton of 27 segments (a marker set with many markers
-    on joints, split into rigid groups) at the cost of one of 15.
+    the constant offsets), and M^2 (every marker's offset couples with every other's through the
+    poses): this keeps a skeleton of 27 segments (a marker set with many markers on joints, split
+    into rigid groups), or of 73 markers (clusters and anatomical markers), at the cost of one of
+    15 segments and 48 markers. Each frame then holds more markers to fit.
     """
     if take_frames is not None:
         frames = min(frames, max(100, take_frames // REFINE_STRIDE))
-    if n_segments <= REFINE_FULL_SEGMENTS:
-        return frames
-    return min(frames, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
+    out = frames
+    if n_segments > REFINE_FULL_SEGMENTS:
+        out = min(out, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
+    if n_markers is not None and n_markers > REFINE_FULL_MARKERS:
+        out = min(out, max(100, int(frames * (REFINE_FULL_MARKERS / n_markers) ** 2)))
+    return min(out, frames)
 
 
 def _rest_markers(skel: Skeleton) -> np.ndarray:
@@ -367,7 +376,8 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
 
     pts = skel.joints.topology.segments.markers.points
     vis = np.isfinite(pts).all(-1)
-    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0]), must=skel.rest_frame)
+    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0],
+                                              int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
     if use.size < 10:
         return skel
     ref = int(np.searchsorted(use, skel.rest_frame))
