@@ -207,18 +207,23 @@ def dask_scheduler(tmp_path_factory):
     """A `dask scheduler` and two `dask worker`s on 127.0.0.1 (subprocesses, stopped at teardown)."""
     pytest.importorskip("distributed")
     d = tmp_path_factory.mktemp("dask")
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     sched_log = d / "scheduler.log"
     workers: list[subprocess.Popen] = []
     scheduler: list[subprocess.Popen] = []
     logs = [sched_log]
     try:
-        with open(sched_log, "wb") as f:
-            scheduler.append(subprocess.Popen(
-                [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-                 "--no-dashboard"], cwd=d, env=env, stdout=f, stderr=subprocess.STDOUT))
+        for _ in range(3):  # the free port may be taken before the scheduler binds it (tests run side by side)
+            port = _free_port()
+            address = f"tcp://127.0.0.1:{port}"
+            with open(sched_log, "wb") as f:
+                scheduler.append(subprocess.Popen(
+                    [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+                     "--no-dashboard"], cwd=d, env=env, stdout=f, stderr=subprocess.STDOUT))
+            _wait_for(lambda: "Scheduler at" in sched_log.read_text(errors="replace") or scheduler[-1].poll() is not None,
+                      180, "the scheduler", logs)
+            if scheduler[-1].poll() is None:
+                break
         for i in range(2):
             log = d / f"worker{i}.log"
             logs.append(log)
@@ -227,7 +232,7 @@ def dask_scheduler(tmp_path_factory):
                     [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1", "--no-nanny",
                      "--no-dashboard", "--host", "127.0.0.1", "--name", f"w{i}", "--local-directory", str(d)],
                     cwd=d, env=env, stdout=f, stderr=subprocess.STDOUT))
-        _wait_for(lambda: sched_log.read_text(errors="replace").count("Register worker") >= 2, 90, "2 workers", logs)
+        _wait_for(lambda: sched_log.read_text(errors="replace").count("Register worker") >= 2, 180, "2 workers", logs)
         yield address
     finally:
         _stop(workers)  # the workers first, while the scheduler can still say goodbye
