@@ -20,7 +20,7 @@ from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 
-VERSION = 10
+VERSION = 11
 
 
 @dataclass(frozen=True)
@@ -37,8 +37,10 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
-    trial_iterations: int = 8
-    """With two starts (see :func:`run`), the iterations each gets before the better is chosen."""
+    trial_iterations: int = 60
+    """With two starts (see :func:`run`), the iterations each gets before the better is chosen (a
+    choice after a few iterations picks the wrong start on two-marker skeletons: their residuals
+    cross late)."""
     joint_prior: float = 0.01
     """Weight (per frame) of the prior that holds each joint where the joints stage put it
     relative to the markers of its two segments (see
