@@ -25,6 +25,7 @@ import numpy as np
 from ..artifacts import Motion
 from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
 from ..naming import SCHEMES, Naming, name_skeleton
+from ..solvers.rotations import rotation_between
 
 VERSION = 3
 
@@ -116,20 +117,6 @@ def joint_points_rest(skel, new_parent: np.ndarray, naming: Naming) -> np.ndarra
     return r
 
 
-def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking direction ``a`` to direction ``b``."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    if c < -1 + 1e-12:  # opposite: half a turn about any axis perpendicular to a
-        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + K + K @ K / (1 + c)
-
-
 def _frame_of(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
     """Orthonormal columns (primary, secondary made perpendicular, their cross product)."""
     e1 = primary / np.linalg.norm(primary)
@@ -191,7 +178,7 @@ def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, 
             t = side * left if (rest == "tpose" or base == "Shoulder") else side * down45 * left - down45 * up
         else:
             t = up
-        Q[s] = _rot_between(d, t) if np.linalg.norm(d) > 1e-9 else np.eye(3)
+        Q[s] = rotation_between(d, t) if np.linalg.norm(d) > 1e-9 else np.eye(3)
     return Q
 
 

@@ -19,6 +19,7 @@ from ..io.bvh import depth_first_order, sanitize_names
 from ..parallel import run_blocks
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
+from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
 VERSION = 11
 
@@ -406,27 +407,28 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
 
 def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
     """(F, 3) rotation vectors of the rotations ``rel`` (F, 3, 3) about their chordal mean."""
-    U, _, Vt = np.linalg.svd(rel.sum(0))
-    M = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    D = np.swapaxes(M, 0, 1)[None] @ rel
-    cos = np.clip((np.trace(D, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.arccos(cos)
-    w = np.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], axis=1)
-    s = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
-    return w * s[:, None]
+    return matrix_to_rotvec(np.swapaxes(project_to_so3(rel.sum(0)), 0, 1)[None] @ rel)
+
+
+def _bone_line(skel: Skeleton, s: int) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Segment ``s``'s joint, the unit direction to the mean of its child joints and that length;
+    None for a root, a leaf or a zero length."""
+    kids = np.flatnonzero(skel.parent == s)
+    if skel.parent[s] < 0 or kids.size == 0:
+        return None
+    a = skel.origin[s]
+    v = skel.origin[kids].mean(0) - a
+    n = float(np.linalg.norm(v))
+    return (a, v / n, n) if n > 0 else None
 
 
 def _limb_radius(skel: Skeleton, s: int, pos: np.ndarray, skip: set) -> float | None:
     """Median distance of segment ``s``'s markers (but ``skip``) from its bone line (its joint to the
     mean of its child joints), over markers along its middle 70 %; None for a root or a leaf."""
-    kids = np.flatnonzero(skel.parent == s)
-    if skel.parent[s] < 0 or kids.size == 0:
+    line = _bone_line(skel, s)
+    if line is None:
         return None
-    a, b = skel.origin[s], skel.origin[kids].mean(0)
-    n = float(np.linalg.norm(b - a))
-    if n <= 0:
-        return None
-    u = (b - a) / n
+    a, u, n = line
     r = []
     for m in np.flatnonzero(skel.marker_segment == s):
         if m in skip or not np.isfinite(pos[m]).all():
@@ -441,14 +443,6 @@ def _limb_radius(skel: Skeleton, s: int, pos: np.ndarray, skip: set) -> float | 
 #: A limb's half-width is at most this fraction of its length (adult thigh, shank, upper arm and
 #: forearm: 0.10-0.15).
 LIMB_WIDTH = 0.2
-
-
-def _bone(skel: Skeleton, s: int) -> float:
-    """Length from segment ``s``'s joint to the mean of its child joints (0 for a root or a leaf)."""
-    kids = np.flatnonzero(skel.parent == s)
-    if skel.parent[s] < 0 or kids.size == 0:
-        return 0.0
-    return float(np.linalg.norm(skel.origin[kids].mean(0) - skel.origin[s]))
 
 
 def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
@@ -495,7 +489,7 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
         if not radii or max(radii) > 2.0 * min(radii):
             continue  # no limb on either side, or two limbs that disagree: no half-width to trust
         r = float(np.mean(radii))
-        if r > LIMB_WIDTH * min(_bone(skel, s_) for s_ in (p, int(c)) if _bone(skel, s_) > 0):
+        if r > LIMB_WIDTH * min(line[2] for s_ in (p, int(c)) if (line := _bone_line(skel, s_)) is not None):
             continue  # a half-width no limb has
         on = [m for m in over if off[m] <= 0.5 * r and abs(t[m]) <= 1.5 * r]
         if not on:
@@ -583,17 +577,6 @@ def _end_site(local: np.ndarray) -> np.ndarray:
     return u * max(float((local @ u).max()), n)
 
 
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: half a turn about any perpendicular
-        w = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        w /= np.linalg.norm(w)
-        return 2.0 * np.outer(w, w) - np.eye(3)
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + K + K @ K / (1.0 + c)
-
-
 def _place_about_axis(obs: np.ndarray, rest: int, shape: np.ndarray) -> np.ndarray:
     """A two-marker segment's joints that are never seen together (nor with a third point), placed
     about its marker axis: each at its median distance along and from the axis, turned about it as
@@ -622,7 +605,7 @@ def _place_about_axis(obs: np.ndarray, rest: int, shape: np.ndarray) -> np.ndarr
         along = np.einsum("fi,fi->f", d, a)
         radial = np.linalg.norm(d - along[:, None] * a, axis=1)
         k = int(np.argmin(np.abs(fr - rest)))
-        perp = _rotation_between(a[k], u) @ (d[k] - along[k] * a[k])
+        perp = rotation_between(a[k], u) @ (d[k] - along[k] * a[k])
         perp = perp - (perp @ u) * u
         n = np.linalg.norm(perp)
         side = perp / n if n > 0 else np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
