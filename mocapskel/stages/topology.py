@@ -2,9 +2,11 @@
 
 The joint cost of every pair of segments is computed on a drastic subsample of
 frames (with Kirk's small distance penalty α so that wrong joints cannot hide
-at infinity); the skeleton's tree is the minimum spanning tree of those costs
-(Kruskal; equal costs are taken in pair order). The root is the tree's centre,
-like a pelvis.
+at infinity); the costs are then made again with each one- or two-marker
+segment given its cheapest joint as one more point (it fixes the segment's
+turn about its marker axis, which a joint with it otherwise leaves free); the
+skeleton's tree is the minimum spanning tree of those costs (Kruskal; equal
+costs are taken in pair order). The root is the tree's centre, like a pelvis.
 
 Only the subsample and the per-frame visibility of the segments depend on the
 length of the take; both are one pass over the visibility of the markers.
@@ -21,7 +23,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 6
+VERSION = 7
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -47,6 +49,9 @@ class Params:
     elbow is nearer)."""
     elsewhere_factor: float = 10.0
     """Cost factor of such a pair (kept finite: the tree may still need it)."""
+    augment: bool = True
+    """Cost the pairs again with each one- or two-marker segment given its cheapest joint as a
+    third point (see :func:`_augmented_costs`)."""
 
 
 def _visible(points: np.ndarray) -> np.ndarray:
@@ -187,6 +192,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
+    on_sub = np.zeros((S, S), dtype=bool)
     for a in range(S):
         for b in range(a + 1, S):
             fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
@@ -194,6 +200,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
                 continue
             if fr.size == frames.size and np.array_equal(fr, frames):
                 at = sub
+                on_sub[a, b] = on_sub[b, a] = True
                 q, c = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
                                  frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]), return_centre=True)
             else:
@@ -206,6 +213,8 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     # a joint that sits nearer to a third segment's markers than to its own two is not theirs (two
     # limbs that swing about one axis "join" on it, inside the trunk): taken only if nothing else connects
     C = np.where(elsewhere, C * params.elsewhere_factor, C)
+    if params.augment:
+        C = _augmented_costs(C, sub, members, on_sub, alpha, params)
     tree = minimum_spanning_tree(S, C)
     if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
@@ -214,3 +223,52 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     cost = np.array([C[a, b] for a, b in edges])
     info = {"version": VERSION, "frames_used": int(frames.size), "alpha": alpha}
     return Topology(segments=segments, edges=edges, cost=cost, pair_cost=C, root=int(root), info=info)
+
+
+def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: np.ndarray, alpha: float,
+                     params: Params) -> np.ndarray:
+    """The pair costs again, each segment of one or two markers given its cheapest joint as one more point.
+
+    A segment of two markers has no frame: its turn about its marker axis is free, so a joint
+    with it need only keep two distances, and two such segments that move together (two thighs
+    in a jump) "join" anywhere their two circles meet. Its cheapest joint (a knee for a thigh) is
+    a point of the segment that fixes that turn; with it, a joint must be fixed in the segment's
+    frame, as for a segment of three markers, and the costs of groups of 1, 2 and many markers
+    compare. Only pairs costed on the common subsample ``sub`` (``on_sub``) are costed again.
+    """
+    S = len(members)
+    M = sub.shape[1]
+    extra: dict[int, np.ndarray] = {}
+    partner: dict[int, int] = {}
+    for s in range(S):
+        if members[s].size >= 3 or not np.isfinite(C[s]).any():
+            continue
+        t = int(np.argmin(C[s]))
+        if not on_sub[s, t]:
+            continue
+        _, c = pair_cost(sub[:, members[s]], sub[:, members[t]], alpha=alpha, frames=np.arange(sub.shape[0]),
+                         return_centre=True)
+        if np.isfinite(c).all():
+            extra[s], partner[s] = c, t
+    if not extra:
+        return C
+    order = sorted(extra)
+    pts = np.concatenate([sub] + [extra[s][:, None] for s in order], axis=1)
+    idx = list(members)
+    for k, s in enumerate(order):
+        idx[s] = np.append(members[s], M + k)
+    out = C.copy()
+    for a in range(S):
+        for b in range(a + 1, S):
+            # a segment's joint with the partner that gave it its point is costed without that point
+            # (the point is that joint: the pair would join on it at no cost)
+            ia = idx[a] if partner.get(a, -1) != b else members[a]
+            ib = idx[b] if partner.get(b, -1) != a else members[b]
+            if ia is members[a] and ib is members[b] or not on_sub[a, b]:
+                continue
+            q, c = pair_cost(pts[:, ia], pts[:, ib], alpha=alpha, frames=np.arange(sub.shape[0]), return_centre=True)
+            use = list(idx)
+            use[a], use[b] = ia, ib
+            q *= params.elsewhere_factor if _nearer_elsewhere(c, pts, use, a, b, params.nearer) else 1.0
+            out[a, b] = out[b, a] = q
+    return out
