@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers.jmv import JointFit, jmv_joint, joint_cost
+from mocapskel.solvers.jmv import JointFit, balanced_alpha, jmv_joint, joint_cost
 from mocapskel.solvers.mtb import Basis, mtb_basis, mtb_joint
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
@@ -146,8 +146,10 @@ def test_mtb_joint_alpha_and_nan_frames():
     assert fit.ok
     assert np.isnan(fit.centre[5:8]).all() and np.isfinite(fit.centre[8:]).all()
     both = np.concatenate([a, b], 1)
-    assert fit.cost == pytest.approx(joint_cost(fit.centre, both, 0.02), rel=1e-10)
-    assert fit.cost <= joint_cost(take.truth.joints[:, 0], both, 0.02) + 1e-12
+    alpha = balanced_alpha(0.02, a.shape[1], b.shape[1])  # each segment's share of the penalty half
+    assert alpha[: a.shape[1]].sum() == pytest.approx(alpha[a.shape[1]:].sum())
+    assert fit.cost == pytest.approx(joint_cost(fit.centre, both, alpha), rel=1e-10)
+    assert fit.cost <= joint_cost(take.truth.joints[:, 0], both, alpha) + 1e-12
     with pytest.raises(ValueError):
         mtb_joint(basis.points[:, :3], a, b)
 

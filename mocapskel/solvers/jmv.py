@@ -137,7 +137,7 @@ def _cost_terms(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float)
         d = np.sqrt(_sqnorm(diff))
         dbar = d.sum(0) / F
         dev = d - dbar
-        q = float((np.einsum("fm,fm->", dev, dev) / F + alpha * dbar.sum()) / M)
+        q = float((np.einsum("fm,fm->", dev, dev) / F + np.sum(alpha * dbar)) / M)
         return q, d, diff, np.full(M, F), dbar, np.ones(M, dtype=bool)
     diff = c[:, None, :] - pts
     diff[~valid] = 0.0
@@ -150,8 +150,35 @@ def _cost_terms(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float)
     k = int(used.sum())
     if k == 0:
         return np.inf, d, diff, n, dbar, used
-    q = float((var[used] + alpha * dbar[used]).sum() / k)
+    q = float((var[used] + (np.broadcast_to(alpha, used.shape) * dbar)[used]).sum() / k)
     return q, d, diff, n, dbar, used
+
+
+def balanced_alpha(alpha: float, n_a: int, n_b: int) -> float | np.ndarray:
+    """Kirk's distance penalty per point (``n_a`` of one segment, then ``n_b`` of the other), each
+    segment's share half of the whole.
+
+    Kirk's term is ``alpha`` times the mean distance over all points, so a segment of four
+    markers pulls the joint twice as hard as one of two: along a direction the motion does not
+    fix (a hip's flexion axis in a walk) the joint then sits in the middle of the bigger segment
+    (the pelvis), not near both. Weighted per segment, the prior is "near each of its two
+    segments". The total weight is Kirk's; equal groups keep his scalar.
+    """
+    alpha = float(alpha)
+    if n_a == n_b or alpha == 0.0 or n_a == 0 or n_b == 0:
+        return alpha
+    n = n_a + n_b
+    return np.concatenate([np.full(n_a, alpha * n / (2.0 * n_a)), np.full(n_b, alpha * n / (2.0 * n_b))])
+
+
+def _alpha_const(alpha, used: np.ndarray | None = None) -> float:
+    """The least value of Q (all distances constant): the mean of alpha^2 / 4 over the points used."""
+    a = np.asarray(alpha, dtype=float)
+    if a.ndim == 0:
+        return float(a * a / 4.0)
+    if used is not None and used.any():
+        a = a[used]
+    return float(np.mean(a * a) / 4.0)
 
 
 def joint_cost(c: ArrayLike, markers: ArrayLike, alpha: float = 0.0) -> float:
@@ -179,7 +206,7 @@ def joint_cost(c: ArrayLike, markers: ArrayLike, alpha: float = 0.0) -> float:
     if c.shape != (pts.shape[0], 3):
         raise ValueError(f"c must be ({pts.shape[0]}, 3), got {c.shape}")
     valid = _seen(pts) & _seen(c)[:, None]
-    return _cost_terms(c, pts, valid, float(alpha))[0]
+    return _cost_terms(c, pts, valid, np.asarray(alpha, dtype=float) if np.ndim(alpha) else float(alpha))[0]
 
 
 def joint_cost_grad(c: ArrayLike, markers: ArrayLike, alpha: float = 0.0) -> tuple[float, np.ndarray]:
@@ -480,7 +507,8 @@ def jmv_joint(
     b = _as_points(markers_b, "markers_b")
     pts = _stack(a, b)
     F, M, _ = pts.shape
-    alpha = float(alpha)
+    alpha_in = float(alpha)
+    alpha = balanced_alpha(alpha_in, a.shape[1], b.shape[1])
     nan = np.full((F, 3), np.nan)
     if a.shape[1] == 0 or b.shape[1] == 0:
         return JointFit(nan, np.inf, 0, False, "a group has no markers")
@@ -497,7 +525,7 @@ def jmv_joint(
             raise ValueError(f"unknown init {init!r}")
         from_mtb = False
         if mode in ("auto", "mtb"):
-            guess = _mtb_init(a, b, alpha)
+            guess = _mtb_init(a, b, alpha_in)
             if guess is not None:
                 starts.append(_fill_holes(guess, near))
                 from_mtb = True
@@ -527,7 +555,7 @@ def jmv_joint(
         c, q, n_iter, converged, radii = _jmv_lm(c0[act], pts[act], vis[act], alpha, max_iter, tol)
         if best is None or q < best[1]:
             best = (act, q, n_iter, converged, radii, c)
-        if q - alpha * alpha / 4.0 <= 1e-24 * max(scale2, 1e-300):
+        if q - _alpha_const(alpha) <= 1e-24 * max(scale2, 1e-300):
             break  # an exact fit: no other start can do better
     if best is None:
         return JointFit(nan, np.inf, 0, False, "no usable starting point")
@@ -552,7 +580,7 @@ def _jmv_lm(c: np.ndarray, pts: np.ndarray, valid: np.ndarray, alpha: float, max
     w = np.where(used, 1.0 / (k * np.maximum(n, 1)), 0.0)  # (M,)
     wv = np.where(valid, w, 0.0)  # (F, M)
     scale = float(np.nanmax(np.abs(pts - np.nanmean(pts, axis=(0, 1)))) if np.isfinite(pts).any() else 1.0) or 1.0
-    const = alpha * alpha / 4.0
+    const = _alpha_const(alpha, used)
 
     def evaluate(cc: np.ndarray):
         q, d, diff, _, dbar, _ = _cost_terms(cc, pts, valid, alpha)
@@ -704,7 +732,7 @@ def jmv_joint_long(
     start = np.stack([np.interp(fr, idx[good], fit.centre[good, k]) for k in range(3)], axis=1)
     pts = _stack(a, b)
     # the joint sits at rho = dbar - alpha / 2 from each point in Kirk's cost (the module notes)
-    centre = fixed_radius_centres(pts, fit.radii - alpha / 2.0, start)
+    centre = fixed_radius_centres(pts, fit.radii - balanced_alpha(alpha, a.shape[1], b.shape[1]) / 2.0, start)
     centre[idx[good]] = fit.centre[good]
     return JointFit(centre, fit.cost, fit.n_iter, fit.ok, fit.reason, None, fit.radii)
 

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack
+from .jmv import JointFit, _alpha_const, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack, balanced_alpha
 
 __all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
 
@@ -329,7 +329,7 @@ def mtb_joint(
     F, M, _ = pts.shape
     if B.shape != (F, 4, 3):
         raise ValueError(f"basis_markers must be ({F}, 4, 3), got {B.shape}")
-    alpha = float(alpha)
+    alpha = balanced_alpha(alpha, np.shape(markers_a)[1], M - np.shape(markers_a)[1])
     nan = np.full((F, 3), np.nan)
     bok = np.isfinite(np.einsum("fki->f", B))  # all four basis points seen
     valid = _seen(pts) & bok[:, None]
@@ -360,7 +360,7 @@ def mtb_joint(
 
     c = o + E @ lam
     q, d, diff, n, dbar, used = _cost_terms(c, pts, valid, alpha)
-    const = alpha * alpha / 4.0
+    const = _alpha_const(alpha, used)
     mu = 1e-4
     it = 0
     # an exact fit (noise-free data): distances constant to ~1e-12 relative
@@ -403,7 +403,7 @@ def mtb_joint(
                 break
     centre = c if all_b else np.where(bok[:, None], c, np.nan)
     radii = np.where(used, dbar, np.nan)
-    if not ranked and alpha == 0.0:
+    if not ranked and not np.any(alpha):
         return JointFit(centre, q, it, False,
                         "the motion does not determine the joint (rank-deficient; e.g. a hinge): "
                         "minimum-norm solution returned", lam, radii)
