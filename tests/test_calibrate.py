@@ -161,17 +161,22 @@ def test_refinement_holds_a_joint_along_the_axis_it_is_told(exact_two_marker):
     bad = replace(exact, origin=exact.origin + np.where(np.arange(len(exact.names))[:, None] == c, 5.0 * a, 0.0))
     start = ik_stage.solve(exact, pts[use], ik_stage._centres_by_edges(exact, exact.joints.centres)[use])
 
-    def along(res):  # the joint's offset from its parent's origin, along a, relative to the exact skeleton's
+    def along(res):  # the joint's offset along a from its parent's marker centroid, relative to the exact skeleton's
         p = exact.parent[c]
-        return float(a @ ((res.origin[c] - res.origin[p]) - (exact.origin[c] - exact.origin[p])))
+        mp = exact.marker_segment == p
+        return float(a @ ((res.origin[c] - res.origin[p] - res.marker_local[mp].mean(0))
+                          - (exact.origin[c] - exact.origin[p] - exact.marker_local[mp].mean(0))))
 
-    free = refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use], start.rot,
-                           start.root_pos, ref_frame=ref, iterations=100)
-    held = refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use], start.rot,
-                           start.root_pos, ref_frame=ref, iterations=100, hold_along={c: a})
+    def fit(**kw):
+        return refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use], start.rot,
+                               start.root_pos, ref_frame=ref, iterations=100, **kw)
+
+    free, soft, stiff = fit(), fit(hold_along={c: a}), fit(hold_along={c: a}, hold_weight=100.0)
     assert abs(along(free)) < 0.05  # the data put it back
-    assert along(held) > 2.5  # held: it stays more than half way where it started
-    assert held.rms[1] > free.rms[1]  # the rms reported is the markers' alone, and holding costs some
+    assert along(stiff) > 2.5  # held: it stays more than half way where it started
+    # the default hold is a prior: where the markers fix the position (here they do), they outweigh it
+    assert abs(along(free)) < along(soft) < 0.5 * along(stiff)
+    assert stiff.rms[1] > soft.rms[1] > free.rms[1]  # the rms reported is the markers' alone, and holding costs some
 
 
 def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():

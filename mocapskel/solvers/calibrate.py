@@ -225,6 +225,7 @@ def refine_skeleton(
     tol: float = 1e-5,
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
+    hold_weight: float = 0.01,
     joint_prior: float = 0.0,
     prior_joints: set | None = None,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
@@ -237,9 +238,15 @@ def refine_skeleton(
     ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.
     iterations, tol : Levenberg–Marquardt limits; stops when the cost falls by less than ``tol`` (relative).
     hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints whose position
-        along that axis (relative to their parent's origin, ``a . d_c``) is held where it starts,
-        by a stiff penalty — hinges, whose centre the markers hardly fix along their axis, placed
-        there by the joints stage. The penalty weighs as much as all the markers together per mm.
+        along that axis, relative to the marker centroid of each of their two segments, is held
+        where it starts (where ``anchor`` has it, when given) — hinges, whose centre the markers
+        hardly fix along their axis, placed there by the joints stage. Held relative to the
+        markers, not to the parent's origin: a chain of hinges about one axis (hip, knee and ankle
+        in a walk) would otherwise slide along it together, every joint keeping its offset from
+        the next (a real walk's knee went 90 mm along its axis, out of the leg).
+    hold_weight : weight (per frame, mm^-2 per mm^2) of that hold: a prior, as ``joint_prior``,
+        that the markers outweigh wherever they fix the position (a hinge that also turns a
+        little about another axis), and that decides where they do not.
     joint_prior : weight (per frame, mm^-2 per mm^2) of a prior that holds every joint where it
         starts relative to the marker centroid of each of its two segments. Where the markers
         fix a joint, their cost rises with every frame and swamps the prior; along a direction
@@ -264,9 +271,14 @@ def refine_skeleton(
     W = max(pr.w.sum(), 1.0)
     held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
             if parent[int(c)] >= 0]
-    d0 = d.copy()
-    k_hold = float(max(pr.w.sum(), 1.0))  # mm^-2: a 1 mm move along a held axis costs as much as 1 mm on every marker
+    k_hold = float(hold_weight) * F
     A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    # the held joints' positions along their axes relative to each of their segments' marker centroids
+    rows = []
+    for c, a in held:
+        Ac = _joint_prior_operator(pr, parent, {c})
+        rows.extend(a @ Ac[k : k + 3] for k in range(0, Ac.shape[0], 3))
+    Hh = np.array(rows).reshape(-1, ng)
     if anchor is None:
         g0 = _pack(pr, d, l)
     else:
@@ -276,9 +288,13 @@ def refine_skeleton(
             d_a[c] = a_origin[c] - a_origin[parent[c]]
         g0 = _pack(pr, d_a, a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
+    h0 = Hh @ g0
 
     def total(p_, R_, d_, l_) -> float:
-        c = pr.cost(p_, R_, d_, l_) + k_hold * sum(float(a @ (d_[c] - d0[c])) ** 2 for c, a in held)
+        c = pr.cost(p_, R_, d_, l_)
+        if Hh.shape[0]:
+            r = Hh @ _pack(pr, d_, l_) - h0
+            c += k_hold * float(r @ r)
         if k_prior > 0 and A.shape[0]:
             r = A @ _pack(pr, d_, l_) - u0
             c += k_prior * float(r @ r)
@@ -320,10 +336,9 @@ def refine_skeleton(
                 Hgg += Hgg_f
                 bg += bg_f
                 blocks.append((Hff, Hfg, bf))
-            for c, a in held:
-                i = pr.gi[c]
-                Hgg[i : i + 3, i : i + 3] += k_hold * np.outer(a, a)
-                bg[i : i + 3] += k_hold * a * float(a @ (d[c] - d0[c]))
+            if Hh.shape[0]:
+                Hgg += k_hold * (Hh.T @ Hh)
+                bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
             if k_prior > 0 and A.shape[0]:
                 Hgg += k_prior * (A.T @ A)
                 bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))

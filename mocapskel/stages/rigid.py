@@ -21,7 +21,7 @@ from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 11
+VERSION = 12
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,12 @@ class Params:
     """A joint is a hinge when the spread of its relative rotations about their second axis is at
     most this fraction of the spread about the first."""
     hold_hinges: bool = True
-    """Joints the joints stage placed as hinges keep their position along the hinge axis
-    in the refinement (the markers hardly fix it; the joints stage put it in the plane
-    of the neighbouring joints)."""
+    """Joints the joints stage placed as hinges keep their position along the hinge axis,
+    relative to their two segments' markers, in the refinement (the markers hardly fix it; the
+    joints stage put it in the plane of the neighbouring joints)."""
+    hold_weight: float = 0.01
+    """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
+    wherever they fix the position."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -395,7 +398,7 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           rot, root, ref_frame=ref,
                           iterations=params.refine_iterations if iterations is None else iterations,
-                          hold_along=hold, joint_prior=prior, prior_joints=prior_joints,
+                          hold_along=hold, hold_weight=params.hold_weight, joint_prior=prior, prior_joints=prior_joints,
                           anchor=None if anchor is None else (anchor.origin, anchor.marker_local))
     info = dict(skel.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter,
