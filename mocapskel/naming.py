@@ -243,6 +243,8 @@ def recognise(skel, motion=None) -> Naming | str:
             order = order[::-1]
     if not 1 <= len(chains[head]) <= 2:
         return f"a head chain of {len(chains[head])} segments"
+    if len(chains[head]) == 2 and not _farther_from(skel, pelvis, chains[head][1], chains[head][0]):
+        return "the end of the head chain is nearer the pelvis than its first segment (not a neck and a head)"
     for pair, what in ((legs, "legs"), (arms, "arms")):
         if any(not 2 <= len(chains[i]) <= 4 for i in pair):
             return f"{what} of {[len(chains[i]) for i in pair]} segments (2-4 expected)"
@@ -300,6 +302,18 @@ def recognise(skel, motion=None) -> Naming | str:
     legs_seg = (chains[left_leg][0], chains[right_leg][0])
     note = f"recognised as a person ({len(trunk)}-segment trunk, legs of {len(chains[legs[0]])}, arms of {len(chains[arms[0]])} segments; left/right from {side_from})"
     return Naming("humanoid", tuple(names), tuple(joint_names), int(pelvis), legs_seg, side_from, note, role)
+
+
+def _farther_from(skel, root: int, a: int, b: int) -> bool:
+    """Whether segment ``a``'s markers sit farther from segment ``root``'s origin than ``b``'s, in the rest pose."""
+    seg = np.asarray(skel.marker_segment)
+    pos = np.asarray(skel.origin)[np.maximum(seg, 0)] + np.asarray(skel.marker_local)
+
+    def dist(s: int) -> float:
+        p = pos[(seg == s) & np.isfinite(pos).all(1)]
+        return float(np.linalg.norm(p.mean(0) - skel.origin[root])) if len(p) else np.nan
+
+    return bool(dist(a) > dist(b))
 
 
 def _depth_from(root: int, nb: list[list[int]]) -> np.ndarray:

@@ -27,7 +27,7 @@ from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, glob
 from ..naming import SCHEMES, Naming, name_skeleton
 from ..solvers.rotations import rotation_between
 
-VERSION = 3
+VERSION = 4
 
 UPS = ("y", "z")
 UNITS = ("cm", "mm", "m")
