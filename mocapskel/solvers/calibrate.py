@@ -100,6 +100,41 @@ def _exp(rv: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
+#: Rows of the per-frame pose blocks solved together in :func:`_forward` and :func:`_backward`.
+_BLOCK = 16
+
+
+def _blocks(n: int) -> list[tuple[int, int]]:
+    return [(a, min(n, a + _BLOCK)) for a in range(0, n, _BLOCK)]
+
+
+def _forward(D: np.ndarray, X: np.ndarray):
+    """Cholesky ``D = L L^T`` of the stacked (n, k, k) ``D`` and ``Y = L^-1 X`` for X (n, k, c).
+
+    Block forward substitution: only the small diagonal blocks of ``L`` are inverted (their
+    inverses, ``Lii``, are returned for :func:`_backward`), the rest is a few batched products
+    (inverting all of ``L`` and multiplying cost several times more).
+    """
+    L = np.linalg.cholesky(D)
+    Y = np.empty(X.shape)
+    Lii = []
+    for a, b in _blocks(D.shape[1]):
+        Li = np.linalg.inv(L[:, a:b, a:b])
+        Lii.append(Li)
+        rhs = X[:, a:b] if a == 0 else X[:, a:b] - L[:, a:b, :a] @ Y[:, :a]
+        Y[:, a:b] = Li @ rhs
+    return L, Lii, Y
+
+
+def _backward(L: np.ndarray, Lii: list, v: np.ndarray) -> np.ndarray:
+    """``L^-T v`` for v (n, k), with ``L`` and ``Lii`` from :func:`_forward`."""
+    z = np.empty(v.shape)
+    for (a, b), Li in reversed(list(zip(_blocks(L.shape[1]), Lii))):
+        rhs = v[:, a:b] if b == L.shape[1] else v[:, a:b] - (np.swapaxes(L[:, b:, a:b], 1, 2) @ z[:, b:, None])[..., 0]
+        z[:, a:b] = (np.swapaxes(Li, 1, 2) @ rhs[..., None])[..., 0]
+    return z
+
+
 class _Problem:
     def __init__(self, parent, seg, observed):
         S = len(parent)
@@ -124,6 +159,30 @@ class _Problem:
         self.gl = {int(m): base + 3 * i for i, m in enumerate(self.used)}
         self.ng = base + 3 * len(self.used)
         self.kids = kids
+        # the Jacobian's non-zero blocks, one entry per (used marker, segment on its path): the
+        # marker's rows in that segment's rotation columns, and in the bone offset columns of the
+        # segment's joint (all but the root)
+        fi, fs, fn, di, dc, dp = [], [], [], [], [], []
+        for i, m in enumerate(self.used):
+            t = int(self.seg[m])
+            pth = path[t]
+            for k, s_ in enumerate(pth):
+                fi.append(i)
+                fs.append(s_)
+                fn.append(pth[k + 1] if s_ != t else -1)
+            for c in pth[1:]:
+                di.append(i)
+                dc.append(self.gi[c] // 3)
+                dp.append(int(self.parent[c]))
+        self.fi, self.fs, self.fn = np.array(fi, dtype=int), np.array(fs, dtype=int), np.array(fn, dtype=int)
+        self.di, self.dc, self.dp = np.array(di, dtype=int), np.array(dc, dtype=int), np.array(dp, dtype=int)
+        self.kid_parent = self.parent[kids]
+        # sub[i, k]: joint k (of kids) is on used marker i's path; sub2[i, k, k']: both are
+        self.sub = np.zeros((self.used.size, len(kids)))
+        self.sub[self.di, self.dc] = 1.0
+        self.sub2 = self.sub[:, :, None] * self.sub[:, None, :]
+        self.sub_mask = np.repeat(np.repeat(self.sub.T, 3, axis=0), 3, axis=1)  # (nd, 3U)
+
 
     def fk(self, p, R, d, l):
         F = p.shape[0]
@@ -148,67 +207,80 @@ class _Problem:
         return float(np.einsum("fmi,fmi->", r, r))
 
     def jacobian(self, sl, p, R, d, l):
-        """Jacobian blocks and residual for frames ``sl``.
+        """The pose Jacobian and residual for frames ``sl``.
 
-        Returns Jf (n, 3U, nf) for the poses, Jd (n, 3U, nd) for the bone
-        offsets, Rw (n, U, 3, 3) the weighted rotation that carries each marker's
-        own offset (its Jacobian block, kept apart: it touches only that
-        marker's rows) and the residual r (n, 3U).
+        Returns JfT (n, nf, 3U), the pose Jacobian transposed, its residual rows ordered by
+        coordinate, then marker (column ``U k + i`` is marker ``i``'s coordinate ``k``); Rw
+        (n, U, 3, 3) the weighted rotation that carries each marker's own offset (its Jacobian
+        block: it touches only that marker's rows); the blocks hat(u) w (n, E, 3, 3) of JfT,
+        one per (marker, segment on its path) (see ``fi``, ``fs``); the residual r (n, U, 3).
+        The non-zero blocks are scattered into place, with no loop over markers. The bone
+        offsets' Jacobian is not formed: its block for marker ``m`` and joint ``c`` is
+        ``R_parent(c) w`` wherever ``c`` is on ``m``'s path (see :meth:`normal_equations`).
         """
         p, R = p[sl], R[sl]
         P, G, x = self.fk(p, R, d, l)
         n = p.shape[0]
         U = self.used.size
-        nf, nd = self.nf, self.nd
-        Jf = np.zeros((n, 3 * U, nf))
-        Jd = np.zeros((n, 3 * U, nd))
+        S, nf = self.S, self.nf
         t_all = self.seg[self.used]
         w = self.w[sl][:, self.used]  # (n, U)
         Rw = R[:, t_all] * w[..., None, None]
-        for i, m in enumerate(self.used):
-            t = int(t_all[i])
-            rows = slice(3 * i, 3 * i + 3)
-            wi = w[:, i, None, None]
-            Jf[:, rows, 0:3] = np.eye(3) * wi
-            pth = self.path[t]
-            for k, s in enumerate(pth):
-                u = R[:, t] @ l[m] if s == t else G[:, pth[k + 1]]
-                Jf[:, rows, 3 + 3 * s : 6 + 3 * s] = -_hat(u) * wi
-            for c in pth[1:]:
-                Jd[:, rows, self.gi[c] : self.gi[c] + 3] = R[:, self.parent[c]] * wi
-        r = ((x - self.y[sl][:, self.used]) * w[..., None]).reshape(n, -1)
-        return Jf, Jd, Rw, r
+        own = x - P[:, t_all]  # (n, U, 3): R_t l_m
+        u = np.where((self.fn >= 0)[None, :, None], G[:, np.maximum(self.fn, 0)], own[:, self.fi])
+        # the rows of marker m in segment s's rotation columns are -hat(u) w, so in JfT hat(u) w
+        Hu = _hat(u) * w[:, self.fi, None, None]  # (n, E, 3, 3)
+        JfT = np.zeros((n, S + 1, 3, 3, U))
+        for k in range(3):
+            JfT[:, 0, k, k, :] = w
+        JfT[:, self.fs + 1, :, :, self.fi] = Hu.transpose(1, 0, 2, 3)
+        r = (x - self.y[sl][:, self.used]) * w[..., None]
+        return JfT.reshape(n, nf, 3 * U), Rw, Hu, r
 
     def normal_equations(self, sl, p, R, d, l):
-        """Per-frame blocks (Hff, Hfg, bf) and the frames' share of (Hgg, bg).
+        """Per-frame blocks (Hff, X) and the frames' share of (Hgg, bg).
 
-        Unknowns g = (bone offsets, marker offsets). A marker offset's Jacobian
-        is the marker's rotation, so its blocks come in closed form: sum_f w R^T R
-        is the marker's visible count times I.
+        Unknowns g = (bone offsets, marker offsets); X (n, nf, ng + 1) is [Hfg | bf]. A marker
+        offset's Jacobian is the marker's rotation, so its blocks come in closed form: sum_f w R^T R
+        is the marker's visible count times I, and its column block of Hfg is the marker's rows
+        of Jf (zero outside the root and the segments on its path) times its rotation. A bone
+        offset's Jacobian is its parent's rotation on the rows of every marker below it, so its
+        blocks come from sums over each joint's subtree (``sub``) instead of a product with the
+        mostly zero (3U, nd) Jacobian.
         """
-        Jf, Jd, Rw, r = self.jacobian(sl, p, R, d, l)
+        JfT, Rw, Hu, r = self.jacobian(sl, p, R, d, l)
         n, U = Rw.shape[:2]
-        nf, nd = self.nf, self.nd
-        JfT = np.ascontiguousarray(Jf.transpose(0, 2, 1))
-        Hff = JfT @ Jf
-        bf = (JfT @ r[..., None])[..., 0]
-        Hfg = np.empty((n, nf, nd + 3 * U))
-        Hfg[..., :nd] = JfT @ Jd
-        Jf4 = Jf.reshape(n, U, 3, nf)
-        Hfg[..., nd:] = (Jf4.transpose(0, 1, 3, 2) @ Rw).transpose(0, 2, 1, 3).reshape(n, nf, 3 * U)
-        Jd2 = Jd.reshape(-1, nd)
-        Hgg = np.zeros((nd + 3 * U, nd + 3 * U))
-        Hgg[:nd, :nd] = Jd2.T @ Jd2
-        RwU = Rw.transpose(1, 0, 2, 3).reshape(U, 3 * n, 3)
-        Hdl = (Jd.reshape(n, U, 3, nd).transpose(1, 3, 0, 2).reshape(U, nd, 3 * n) @ RwU).transpose(1, 0, 2).reshape(nd, 3 * U)
-        Hgg[:nd, nd:] = Hdl
-        Hgg[nd:, :nd] = Hdl.T
-        idx = np.arange(nd, nd + 3 * U)
-        Hgg[idx, idx] = np.repeat(self.w[sl][:, self.used].sum(0), 3)
-        bg = np.empty(nd + 3 * U)
-        bg[:nd] = Jd2.T @ r.reshape(-1)
-        bg[nd:] = (r.reshape(n, U, 3).transpose(1, 0, 2).reshape(U, 1, 3 * n) @ RwU).reshape(-1)
-        return Hff, Hfg, bf, Hgg, bg
+        S, nf, nd, ng, nk = self.S, self.nf, self.nd, self.ng, self.nd // 3
+        w = self.w[sl][:, self.used]
+        Rp = R[sl][:, self.kid_parent]  # (n, nk, 3, 3) each joint's parent rotation
+        Hff = JfT @ JfT.transpose(0, 2, 1)
+        X = np.empty((n, nf, ng + 1))
+        # bone columns: the Jf rows of a joint's subtree summed, times the parent's rotation
+        A = (JfT.reshape(n, nf * 3, U) @ self.sub).reshape(n, nf, 3, nk)
+        X[..., :nd] = (A.transpose(0, 3, 1, 2) @ Rp).transpose(0, 2, 1, 3).reshape(n, nf, nd)
+        X[..., ng] = (JfT @ r.transpose(0, 2, 1).reshape(n, 3 * U, 1))[..., 0]
+        # marker columns: root rows w R_t, a path segment's rows hat(u) w R_t, zero elsewhere
+        Xl = X[..., nd:ng].reshape(n, S + 1, 3, U, 3)
+        Xl[:] = 0.0
+        Xl[:, 0] = Rw.transpose(0, 2, 1, 3)
+        Xl[:, self.fs + 1, :, self.fi, :] = (Hu @ Rw[:, self.fi]).transpose(1, 0, 2, 3)
+        Hgg = np.zeros((ng, ng))
+        # bone-bone: joints c, e share the visible markers below both
+        both = (w @ self.sub2.reshape(U, nk * nk)).reshape(n, nk, 1, nk, 1)
+        Rs = Rp.transpose(0, 1, 3, 2).reshape(n, nd, 3)  # rows (joint, axis)
+        RR = (Rs @ Rs.transpose(0, 2, 1)).reshape(n, nk, 3, nk, 3)
+        Hgg[:nd, :nd] = (RR * both).sum(0).reshape(nd, nd)
+        # bone-marker: joint c and a marker m below it, sum_f R_parent(c)^T w R_t(m), every pair in
+        # one product, then kept where c is on m's path
+        Hdl = Rs.transpose(1, 0, 2).reshape(nd, 3 * n) @ Rw.transpose(0, 2, 1, 3).reshape(3 * n, 3 * U)
+        Hgg[:nd, nd:] = Hdl * self.sub_mask
+        Hgg[nd:, :nd] = Hgg[:nd, nd:].T
+        idx = np.arange(nd, ng)
+        Hgg[idx, idx] = np.repeat(w.sum(0), 3)
+        bg = np.empty(ng)
+        bg[:nd] = np.einsum("fcja,fcj->ca", Rp, np.einsum("fmj,mc->fcj", r, self.sub)).reshape(-1)
+        bg[nd:] = np.einsum("fmji,fmj->mi", Rw, r).reshape(-1)
+        return Hff, X, Hgg, bg
 
 
 def refine_skeleton(
@@ -321,21 +393,20 @@ def refine_skeleton(
             blocks = []
 
             def chunk_system(sl: slice):
-                Hff, Hfg, bf, Hgg_f, bg_f = pr.normal_equations(sl, p, R, d, l)
+                Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, p, R, d, l)
                 if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
                     i = ref_frame - sl.start
                     Hff[i, 3:, :] = 0.0
                     Hff[i, :, 3:] = 0.0
                     Hff[i, 3:, 3:] = np.eye(nf - 3)
-                    Hfg[i, 3:] = 0.0
-                    bf[i, 3:] = 0.0
-                Hfg[:, :, fix_g] = 0.0
-                return Hff, Hfg, bf, Hgg_f, bg_f
+                    X[i, 3:] = 0.0
+                X[:, :, :ng][:, :, fix_g] = 0.0
+                return Hff, X, Hgg_f, bg_f
 
-            for Hff, Hfg, bf, Hgg_f, bg_f in run_blocks(chunk_system, chunks):  # summed in chunk order
+            for Hff, X, Hgg_f, bg_f in run_blocks(chunk_system, chunks):  # summed in chunk order
                 Hgg += Hgg_f
                 bg += bg_f
-                blocks.append((Hff, Hfg, bf))
+                blocks.append((Hff, X))
             if Hh.shape[0]:
                 Hgg += k_hold * (Hh.T @ Hh)
                 bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
@@ -354,20 +425,21 @@ def refine_skeleton(
             Ys = []
 
             def eliminate(block):
-                # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb
-                Hff, Hfg, bf = block
+                # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb,
+                # both from one product Y^T Y over the chunk's frames
+                Hff, X = block
                 D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
-                Li = np.linalg.inv(np.linalg.cholesky(D))
-                Y = Li @ np.concatenate([Hfg, bf[..., None]], axis=2)
-                Yg = Y[..., :ng].reshape(-1, ng)
-                return Li, Y, Yg.T @ Yg, Yg.T @ Y[..., ng].reshape(-1)
+                L, Lii, Y = _forward(D, X)
+                Y2 = Y.reshape(-1, ng + 1)
+                return L, Lii, Y, Y2.T @ Y2
 
-            for Li, Y, YtY, Ytb in run_blocks(eliminate, blocks):  # summed in chunk order
-                Sg -= YtY
-                rhs += Ytb
-                Ys.append((Li, Y))
+            for L, Lii, Y, YtY in run_blocks(eliminate, blocks):  # summed in chunk order
+                Sg -= YtY[:ng, :ng]
+                rhs += YtY[:ng, ng]
+                Ys.append((L, Lii, Y))
             dg = np.linalg.solve(Sg, rhs)
-            df = np.concatenate([-(np.swapaxes(Li, 1, 2) @ (Y[..., ng] + Y[..., :ng] @ dg)[..., None])[..., 0] for Li, Y in Ys])
+            dg1 = np.append(dg, 1.0)
+            df = np.concatenate([-_backward(L, Lii, Y @ dg1) for L, Lii, Y in Ys])
             p1 = p + df[:, :3]
             R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
             d1 = d.copy()
@@ -380,8 +452,8 @@ def refine_skeleton(
             # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
             # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
             pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
-            for (Hff, _, bf), sl in zip(blocks, chunks):
-                h = df[sl]
+            for (Hff, X), sl in zip(blocks, chunks):
+                h, bf = df[sl], X[..., ng]
                 pred += float(np.einsum("fi,fi->", h, (lam * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - bf))
             if c1 < cost:
                 break

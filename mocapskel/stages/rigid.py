@@ -21,7 +21,7 @@ from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 12
+VERSION = 13
 
 
 @dataclass(frozen=True)
