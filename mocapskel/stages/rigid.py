@@ -142,13 +142,13 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
         else:
             # a second start (the joints stage's framework trajectories): both are refined for a few
             # iterations side by side on the cores, and the better is refined to the end
-            def trial(which: int) -> tuple[Skeleton, Skeleton] | None:
+            def trial(which: int) -> tuple[Skeleton, Skeleton, dict] | None:
                 c = joints.centres if which == 0 else joints.alt_centres
                 try:
                     st = skel if which == 0 else _fit(joints, c, rest, parent, parent_edge, order, params)
                 except DataError:
                     return None
-                return st, refine_once(st, params, c, 0.0, iterations=params.trial_iterations)
+                return (st, *_refine_once(st, params, c, 0.0, iterations=params.trial_iterations))
 
             one, two = run_blocks(trial, [0, 1])
             if "refined" in one[1].info:
@@ -159,8 +159,8 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                     win = 1 if bad_one else 0
                 else:
                     win = 1 if b is not None and b < a else 0
-                st, part = (one, two)[win]
-                out = refine(st, params, (joints.centres, joints.alt_centres)[win], part)
+                st, part, hold = (one, two)[win]
+                out = refine(st, params, (joints.centres, joints.alt_centres)[win], part, hold)
                 info = dict(out.info)
                 info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
                                        marker_rms_mm_starts={"joints": a, "framework": b},
@@ -331,18 +331,21 @@ def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
     return out
 
 
-def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None) -> Skeleton:
+def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None,
+           hold: dict[int, np.ndarray] | None = None) -> Skeleton:
     """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
     from its markers, or slid far from where the joints stage put it.
 
     partial : a refinement of ``skel`` stopped early, to go on from.
+    hold : the hinge axes that refinement held (see :func:`_refine_once`), so that they are not
+    found again by IK with ``skel``.
     """
     if partial is None or "refined" not in partial.info:
-        out = refine_once(skel, params, centres, 0.0)
+        out, hold = _refine_once(skel, params, centres, 0.0)
     else:
         done = partial.info["refined"]["iterations"]
-        out = refine_once(partial, params, centres, 0.0, anchor=skel,
-                          iterations=max(params.refine_iterations - done, 1))
+        out, hold = _refine_once(partial, params, centres, 0.0, anchor=skel,
+                                 iterations=max(params.refine_iterations - done, 1), hold=hold)
         info = dict(out.info)
         info["refined"] = dict(info["refined"], iterations=done + out.info["refined"]["iterations"],
                                marker_rms_mm_before=partial.info["refined"]["marker_rms_mm_before"])
@@ -354,7 +357,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
     if bad and params.joint_prior > 0:
         # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
         # joints where the joints stage put them
-        held = refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel)
+        held, _ = _refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel, hold=hold)
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
         # A clearly worse fit: the markers needed the move (a rough start put right), so it stays
@@ -378,6 +381,18 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
     anchor : the unrefined skeleton when ``skel`` is a refinement of it: the fit goes on from
     ``skel``'s own poses, and the prior holds joints where ``anchor`` has them.
     """
+    return _refine_once(skel, params, centres, prior, prior_joints, anchor, iterations)[0]
+
+
+def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float,
+                 prior_joints: set | None = None, anchor: Skeleton | None = None,
+                 iterations: int | None = None, hold: dict[int, np.ndarray] | None = None
+                 ) -> tuple[Skeleton, dict[int, np.ndarray] | None]:
+    """:func:`refine_once`, and the hinge axes it held ({child segment: axis}; None when it did not run).
+
+    hold : with ``anchor``, the hinge axes found from IK with ``anchor`` on the same frames (an earlier
+    refinement of ``anchor`` returned them): that IK is not solved again.
+    """
     from .ik import _centres_by_edges, solve
 
     pts = skel.joints.topology.segments.markers.points
@@ -385,12 +400,13 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
     use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0],
                                               int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
     if use.size < 10:
-        return skel
+        return skel, None
     ref = int(np.searchsorted(use, skel.rest_frame))
     centres = _centres_by_edges(skel, skel.joints.centres if centres is None else centres)
     if anchor is not None and skel.pose_frames is not None and np.array_equal(skel.pose_frames, use):
         rot, root = skel.pose_rot, skel.pose_root  # a refinement's own poses on these frames
-        hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot) if params.hold_hinges else {}
+        if hold is None:
+            hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot) if params.hold_hinges else {}
     else:
         start = solve(skel, pts[use], centres[use])
         rot, root = start.rot, start.root_pos
@@ -405,7 +421,7 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
                        "marker_rms_mm_before": res.rms[0], "marker_rms_mm_after": res.rms[1],
                        "hinges_held": [skel.names[c] for c in hold]}
     return replace(skel, origin=res.origin, marker_local=res.marker_local, info=info,
-                   pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
+                   pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos), hold
 
 
 def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
