@@ -100,41 +100,6 @@ def _exp(rv: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
-#: Rows of the per-frame pose blocks solved together in :func:`_forward` and :func:`_backward`.
-_BLOCK = 16
-
-
-def _blocks(n: int) -> list[tuple[int, int]]:
-    return [(a, min(n, a + _BLOCK)) for a in range(0, n, _BLOCK)]
-
-
-def _forward(D: np.ndarray, X: np.ndarray):
-    """Cholesky ``D = L L^T`` of the stacked (n, k, k) ``D`` and ``Y = L^-1 X`` for X (n, k, c).
-
-    Block forward substitution: only the small diagonal blocks of ``L`` are inverted (their
-    inverses, ``Lii``, are returned for :func:`_backward`), the rest is a few batched products
-    (inverting all of ``L`` and multiplying cost several times more).
-    """
-    L = np.linalg.cholesky(D)
-    Y = np.empty(X.shape)
-    Lii = []
-    for a, b in _blocks(D.shape[1]):
-        Li = np.linalg.inv(L[:, a:b, a:b])
-        Lii.append(Li)
-        rhs = X[:, a:b] if a == 0 else X[:, a:b] - L[:, a:b, :a] @ Y[:, :a]
-        Y[:, a:b] = Li @ rhs
-    return L, Lii, Y
-
-
-def _backward(L: np.ndarray, Lii: list, v: np.ndarray) -> np.ndarray:
-    """``L^-T v`` for v (n, k), with ``L`` and ``Lii`` from :func:`_forward`."""
-    z = np.empty(v.shape)
-    for (a, b), Li in reversed(list(zip(_blocks(L.shape[1]), Lii))):
-        rhs = v[:, a:b] if b == L.shape[1] else v[:, a:b] - (np.swapaxes(L[:, b:, a:b], 1, 2) @ z[:, b:, None])[..., 0]
-        z[:, a:b] = (np.swapaxes(Li, 1, 2) @ rhs[..., None])[..., 0]
-    return z
-
-
 class _Problem:
     def __init__(self, parent, seg, observed):
         S = len(parent)
@@ -182,6 +147,83 @@ class _Problem:
         self.sub[self.di, self.dc] = 1.0
         self.sub2 = self.sub[:, :, None] * self.sub[:, None, :]
         self.sub_mask = np.repeat(np.repeat(self.sub.T, 3, axis=0), 3, axis=1)  # (nd, 3U)
+        self._limbs()
+
+    def _limbs(self) -> None:
+        """The pose unknowns split into the trunk and the limbs, for :meth:`eliminate`.
+
+        The trunk: the root, every segment with two or more children and their ancestors; a limb:
+        a child of the trunk outside it, with everything below. Two segments of different limbs
+        share no marker below both, so their block of a frame's pose Hessian is zero, and a limb's
+        rows of ``X`` are zero outside the columns of its markers and of the joints on their paths
+        (plus the right-hand side): ``trunk`` (pose indices) and ``limbs`` [(pose indices, columns
+        of X)] say which.
+        """
+        S, parent = self.S, self.parent
+        trunk = set()
+        for s_ in range(S):
+            if parent[s_] < 0 or np.count_nonzero(parent == s_) >= 2:
+                while s_ >= 0 and s_ not in trunk:
+                    trunk.add(s_)
+                    s_ = int(parent[s_])
+
+        def rows(segs):
+            return np.concatenate([np.arange(3 + 3 * x, 6 + 3 * x) for x in segs]).astype(int)
+
+        t_used = self.seg[self.used]
+        self.trunk = np.concatenate([np.arange(3), rows(sorted(trunk))])
+        self.limbs = []
+        for head in (c for c in range(S) if parent[c] >= 0 and int(parent[c]) in trunk and c not in trunk):
+            segs = [x for x in range(S) if head in self.path[x]]
+            mk = np.flatnonzero(np.isin(t_used, segs))
+            bones = np.flatnonzero(self.sub[mk].any(0)) if mk.size else np.zeros(0, dtype=int)
+            cols = np.concatenate([(3 * bones[:, None] + np.arange(3)).ravel(),
+                                   (self.nd + 3 * mk[:, None] + np.arange(3)).ravel(), [self.ng]]).astype(int)
+            self.limbs.append((rows(segs), cols))
+
+    def eliminate(self, D: np.ndarray, X: np.ndarray):
+        """Schur complement of a chunk's pose blocks: ``X^T D^-1 X`` summed over its frames.
+
+        D (n, nf, nf) the damped pose blocks, X (n, nf, ng + 1) = [Hfg | bf]. With the trunk's pose
+        unknowns last, D = L L^T has L = [[L_A, 0], [W^T, L_C]] (L_A block diagonal over the limbs,
+        L_A W = the limbs' blocks with the trunk), and Y = L^-1 X has a limb's rows L_k^-1 X_k on
+        that limb's columns only and the trunk's rows L_C^-1 (X_C - W^T Y_A): X^T D^-1 X = Y^T Y
+        is then a product over the trunk's dozen rows and a small one for each limb, instead of
+        one over all nf rows (a fraction of the work, the same sums). Returns (that (ng+1, ng+1)
+        sum, the factors for :meth:`back_substitute`).
+        """
+        rc = self.trunk
+        Dc = D[:, rc[:, None], rc[None, :]]
+        Xc = X[:, rc]
+        YY = np.zeros((X.shape[2], X.shape[2]))
+        parts = []
+        for rk, ck in self.limbs:
+            Lki = np.linalg.inv(np.linalg.cholesky(D[:, rk[:, None], rk[None, :]]))
+            Wk = Lki @ D[:, rk[:, None], rc[None, :]]
+            Yk = Lki @ X[:, rk[:, None], ck[None, :]]
+            WkT = Wk.transpose(0, 2, 1)
+            Dc = Dc - WkT @ Wk
+            Xc[:, :, ck] -= WkT @ Yk
+            Y2 = Yk.reshape(-1, ck.size)
+            YY[ck[:, None], ck[None, :]] += Y2.T @ Y2
+            parts.append((Lki, Wk, Yk))
+        Lci = np.linalg.inv(np.linalg.cholesky(Dc))
+        Yc = Lci @ Xc
+        Y2 = Yc.reshape(-1, X.shape[2])
+        YY += Y2.T @ Y2
+        return YY, (Lci, Yc, parts)
+
+    def back_substitute(self, factors, dg1: np.ndarray) -> np.ndarray:
+        """The pose steps ``-D^-1 X dg1`` (n, nf) from :meth:`eliminate`'s factors: ``-L^-T (Y dg1)``."""
+        Lci, Yc, parts = factors
+        n = Yc.shape[0]
+        out = np.empty((n, self.nf))
+        zc = (Lci.transpose(0, 2, 1) @ (Yc @ dg1)[..., None])[..., 0]
+        out[:, self.trunk] = -zc
+        for (rk, ck), (Lki, Wk, Yk) in zip(self.limbs, parts):
+            v = Yk @ dg1[ck] - (Wk @ zc[..., None])[..., 0]
+            out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
+        return out
 
 
     def fk(self, p, R, d, l):
@@ -426,20 +468,18 @@ def refine_skeleton(
 
             def eliminate(block):
                 # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb,
-                # both from one product Y^T Y over the chunk's frames
+                # both from Y^T Y over the chunk's frames (see _Problem.eliminate)
                 Hff, X = block
                 D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
-                L, Lii, Y = _forward(D, X)
-                Y2 = Y.reshape(-1, ng + 1)
-                return L, Lii, Y, Y2.T @ Y2
+                return pr.eliminate(D, X)
 
-            for L, Lii, Y, YtY in run_blocks(eliminate, blocks):  # summed in chunk order
+            for YtY, factors in run_blocks(eliminate, blocks):  # summed in chunk order
                 Sg -= YtY[:ng, :ng]
                 rhs += YtY[:ng, ng]
-                Ys.append((L, Lii, Y))
+                Ys.append(factors)
             dg = np.linalg.solve(Sg, rhs)
             dg1 = np.append(dg, 1.0)
-            df = np.concatenate([-_backward(L, Lii, Y @ dg1) for L, Lii, Y in Ys])
+            df = np.concatenate([pr.back_substitute(factors, dg1) for factors in Ys])
             p1 = p + df[:, :3]
             R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
             d1 = d.copy()
