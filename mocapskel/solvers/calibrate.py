@@ -351,6 +351,7 @@ def refine_skeleton(
     rot, root_pos : (F, S, 3, 3), (F, 3) the starting poses (e.g. IK with the skeleton).
     ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.
     iterations, tol : Levenberg–Marquardt limits; stops when the cost falls by less than ``tol`` (relative).
+    chunk : most frames whose normal equations are formed and eliminated together (on one thread).
     hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints whose position
         along that axis, relative to the marker centroid of each of their two segments, is held
         where it starts (where ``anchor`` has it, when given) — hinges, whose centre the markers
@@ -425,7 +426,11 @@ def refine_skeleton(
         m0 = [int(m) for m in pr.used if marker_segment[m] == pr.root]
         if m0:
             fix_g[pr.gl[m0[0]] : pr.gl[m0[0]] + 3] = True
-    chunks = [slice(a, min(F, a + chunk)) for a in range(0, F, chunk)]
+    # an even number of equal chunks of at most ``chunk`` frames: two threads (or four) get equal
+    # shares (128 + 49 frames kept one core idle most of every iteration); the split depends on F only
+    n_chunks = 2 * -(-F // (2 * chunk))
+    cut = np.linspace(0, F, n_chunks + 1).round().astype(int)
+    chunks = [slice(int(a), int(b)) for a, b in zip(cut[:-1], cut[1:]) if b > a]
     it = 0
     system = None
     for it in range(1, iterations + 1):
