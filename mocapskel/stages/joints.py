@@ -132,6 +132,16 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     tree = None
     alt_from_tree: list[int] = []  # JMV joints that the framework also placed
     if params.method == "auto":  # the rules measured in bench/joints.py (see the module docstring)
+        # the JMV fits of the joints left and Hang's framework are independent of each other and of
+        # the rules below that choose among them: fitted first, side by side on the cores
+        todo = [e for e in range(E) if not done[e]]
+
+        def fit_job(e: int):
+            if e < 0:
+                return solve_tree(groups, edges, alpha=alpha)
+            return jmv_joint_long(groups[edges[e][0]], groups[edges[e][1]], alpha=alpha, max_frames=params.jmv_frames)
+
+        fitted = dict(zip([-1] + todo, run_blocks(fit_job, [-1] + todo))) if todo else {}
         for e, (a, b) in enumerate(edges):
             if done[e]:
                 continue
@@ -142,7 +152,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 if side is not None:
                     # kept unless JMV, with the distance penalty, does better: a marker that hardly moves
                     # on its sphere leaves the radius free (metres), the penalty keeps the joint near
-                    fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
+                    fit = fitted[e]
                     both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
                     if not (np.isfinite(fit.centre).any()
                             and joint_cost(fit.centre[diag], both, alpha=alpha) < joint_cost(c[diag], both, alpha=alpha)):
@@ -150,7 +160,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                         per_joint[e]["why"] = "a segment with one marker: its marker on a sphere about the joint in the other segment's frame (MGDK)"
                         continue
             if fit is None:
-                fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)
+                fit = fitted[e]
             centres[:, e], methods[e], done[e] = fit.centre, "jmv", True
             per_joint[e]["why"] = f"segments of {na} and {nb} markers: joint-marker-variance optimisation"
             if not fit.ok:
@@ -167,7 +177,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     per_joint[e].pop("note", None)
             # Hang's framework may reach a lower joint cost (exact data): then it wins
             if tree is None:
-                tree = solve_tree(groups, edges, alpha=alpha)
+                tree = fitted[-1]
             if np.isfinite(tree.centres[:, e]).any():
                 alt_from_tree.append(e)
             both = np.concatenate([groups[a], groups[b]], axis=1)
