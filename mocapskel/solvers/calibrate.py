@@ -17,8 +17,12 @@ offsets ``d_c`` (child ``c``'s joint relative to its parent's origin, in the
 parent's rest frame) and marker offsets ``l_m``. Given the rotations the
 marker positions are linear in ``p``, ``d`` and ``l``; the problem is solved
 by Levenberg–Marquardt, the per-frame pose blocks eliminated frame by frame
-(Schur complement), so an iteration costs O(F · (3S)^2 · (3S + G)) for G
-constant unknowns, with no Python loop over frames.
+(Schur complement), with no Python loop over frames. The elimination follows
+the tree: segments of different limbs share no marker, so each limb's block is
+factored on its own and only the trunk's few rows (the root and the segments
+that branch) meet every constant unknown; an iteration costs about
+O(F · (3T + 3) · G^2) for G constant unknowns and T trunk segments, plus the
+limbs' small products, instead of O(F · 3S · G^2).
 
 The gauge (each segment's local frame, and where the root's origin sits) is
 fixed afterwards: every segment's rotation is the identity at the reference
