@@ -23,7 +23,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 7
+VERSION = 8
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -213,11 +213,15 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     # a joint that sits nearer to a third segment's markers than to its own two is not theirs (two
     # limbs that swing about one axis "join" on it, inside the trunk): taken only if nothing else connects
     C = np.where(elsewhere, C * params.elsewhere_factor, C)
+    first = C
     if params.augment:
         C = _augmented_costs(C, sub, members, on_sub, alpha, params)
     tree = minimum_spanning_tree(S, C)
     if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
+    # the tree's edges in the order of the first costs (as Kruskal took them before the costs were made
+    # again): where the second costs keep the tree, its edges and joints keep their order
+    tree = tree[np.argsort([first[a, b] for a, b in tree.tolist()], kind="stable")]
     root = tree_centre(S, tree, {s: int((segments.group == s).sum()) for s in range(S)})
     edges = np.array(_bfs(_neighbours(S, tree), root)[0], dtype=int).reshape(-1, 2)
     cost = np.array([C[a, b] for a, b in edges])
