@@ -23,7 +23,7 @@ from ..errors import DataError
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
-VERSION = 8
+VERSION = 9
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -192,7 +192,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
-    on_sub = np.zeros((S, S), dtype=bool)
+    on_sub: dict[tuple[int, int], np.ndarray] = {}  # (a, b), a < b: the joint on the common subsample
     for a in range(S):
         for b in range(a + 1, S):
             fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
@@ -200,9 +200,9 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
                 continue
             if fr.size == frames.size and np.array_equal(fr, frames):
                 at = sub
-                on_sub[a, b] = on_sub[b, a] = True
                 q, c = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
                                  frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]), return_centre=True)
+                on_sub[a, b] = c
             else:
                 pf = pts[fr]
                 at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
@@ -229,7 +229,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     return Topology(segments=segments, edges=edges, cost=cost, pair_cost=C, root=int(root), info=info)
 
 
-def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: np.ndarray, alpha: float,
+def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: dict, alpha: float,
                      params: Params) -> np.ndarray:
     """The pair costs again, each segment of one or two markers given its cheapest joint as one more point.
 
@@ -238,7 +238,8 @@ def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: np.n
     in a jump) "join" anywhere their two circles meet. Its cheapest joint (a knee for a thigh) is
     a point of the segment that fixes that turn; with it, a joint must be fixed in the segment's
     frame, as for a segment of three markers, and the costs of groups of 1, 2 and many markers
-    compare. Only pairs costed on the common subsample ``sub`` (``on_sub``) are costed again.
+    compare. Only pairs costed on the common subsample ``sub`` are costed again: ``on_sub`` holds
+    their joints there, by (a, b) with a < b.
     """
     S = len(members)
     M = sub.shape[1]
@@ -248,11 +249,8 @@ def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: np.n
         if members[s].size >= 3 or not np.isfinite(C[s]).any():
             continue
         t = int(np.argmin(C[s]))
-        if not on_sub[s, t]:
-            continue
-        _, c = pair_cost(sub[:, members[s]], sub[:, members[t]], alpha=alpha, frames=np.arange(sub.shape[0]),
-                         return_centre=True)
-        if np.isfinite(c).all():
+        c = on_sub.get((min(s, t), max(s, t)))
+        if c is not None and np.isfinite(c).all():
             extra[s], partner[s] = c, t
     if not extra:
         return C
@@ -268,7 +266,7 @@ def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: np.n
             # (the point is that joint: the pair would join on it at no cost)
             ia = idx[a] if partner.get(a, -1) != b else members[a]
             ib = idx[b] if partner.get(b, -1) != a else members[b]
-            if ia is members[a] and ib is members[b] or not on_sub[a, b]:
+            if ia is members[a] and ib is members[b] or (a, b) not in on_sub:
                 continue
             q, c = pair_cost(pts[:, ia], pts[:, ib], alpha=alpha, frames=np.arange(sub.shape[0]), return_centre=True)
             use = list(idx)
