@@ -240,3 +240,51 @@ def test_distance_penalty_shared_per_segment_puts_gait_hips_nearer_the_truth(mon
         both = set(errs[0]) & set(errs[1])
         assert both, errs
         assert all(errs[0][k] < errs[1][k] for k in both), (seed, errs)
+
+
+def _two_segment_turns(wobble_deg: float, method: str, n: int = 200):
+    """A parent and a child whose relative rotations turn up to 60° about z and ``wobble_deg`` about x;
+    a skeleton-like stand-in with the joints stage's method for their joint."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(7)
+    rel = Rotation.from_rotvec(np.column_stack([np.radians(wobble_deg) * np.sin(np.linspace(0, 9, n)),
+                                                np.zeros(n), np.radians(60) * rng.uniform(-1, 1, n)]))
+    parent_rot = Rotation.random(n, random_state=3)
+    rot = np.stack([parent_rot.as_matrix(), (parent_rot * rel).as_matrix()], axis=1)
+    joints = SimpleNamespace(info={"per_joint": [{"hinge": False}]}, method=(method,),
+                             topology=SimpleNamespace(edges=np.array([[0, 1]])))
+    return SimpleNamespace(joints=joints, parent=np.array([-1, 0])), rot
+
+
+def test_refinement_holds_a_score_joint_that_turns_about_one_axis():
+    """A joint SCoRE fixed in full (3+ markers on both segments) whose motion turns about one axis (a
+    walk's ankle) is held along that axis, as the joints stage's hinges are; not when it turns about
+    two, nor a joint of a one- or two-marker segment (its start is too rough to hold)."""
+    skel, rot = _two_segment_turns(5.0, "score")
+    held = rigid._hinge_axes(skel, rot, 0.6)
+    assert list(held) == [1] and abs(held[1] @ np.array([0.0, 0.0, 1.0])) > 0.999
+    skel2, rot2 = _two_segment_turns(50.0, "score")
+    assert rigid._hinge_axes(skel2, rot2, 0.6) == {}
+    skel.joints.method = ("jmv",)
+    assert rigid._hinge_axes(skel, rot, 0.6) == {}
+    skel.joints.info["per_joint"][0]["hinge"] = True  # placed as a hinge by the joints stage: always held
+    assert list(rigid._hinge_axes(skel, rot, 0.6)) == [1]
+
+
+def test_implausible_joints_include_a_bone_longer_than_the_subject():
+    """The start a refinement keeps: never one whose bone is longer than the subject's marker extent
+    (a real gait take's framework start gave a 1.4 m foot bone at a lower marker rms)."""
+    from types import SimpleNamespace
+
+    origin = np.array([[0.0, 0, 0], [0, 0, -400], [0, 0, -800]])
+    seg = np.array([0, 0, 1, 1, 2, 2])
+    local = np.array([[100.0, 0, -150], [-100, 0, -150], [50, 0, 100], [50, 0, -100], [0, 50, 20], [0, -50, 20]])
+    ok = SimpleNamespace(origin=origin, marker_local=local, marker_segment=seg, parent=np.array([-1, 0, 1]))
+    assert rigid.implausible_joints(ok, 0.5) == []
+    far = origin.copy()
+    far[2] = [0, 0, -2400]  # the last joint 2 m below its parent's, its markers where they were
+    moved = local.copy()
+    moved[4:] += [0, 0, 1600]
+    bad = SimpleNamespace(origin=far, marker_local=moved, marker_segment=seg, parent=ok.parent)
+    assert rigid.implausible_joints(bad, 100.0) == [2]  # by its length alone (far from markers allowed here)

@@ -41,12 +41,14 @@ def _score(name: str, tmp_path: Path) -> dict:
 
 
 def test_walking_take_finds_the_leg_joints(tmp_path: Path) -> None:
-    """A 26-marker gait take: hips, knees and ankles in the right tree, all six found, bones within
-    12 mm. Regression: walking turns hip, knee and ankle about one axis, and the refinement slid the
-    chain along it (each hinge held only against its parent's origin), a knee 128 mm out of the leg."""
+    """A 26-marker gait take: hips, knees and ankles in the right tree, all six found, within 36 mm
+    rms (34.3 now), bones within 12 mm. Regressions: walking turns hip, knee and ankle about one axis,
+    and the refinement slid the chain along it (each hinge held only against its parent's origin), a
+    knee 128 mm out of the leg; the left ankle, which SCoRE fixes in full but which turns about one
+    axis, slid 45 mm along it until such joints were held too (41.6 mm rms before)."""
     s = _score("opensim_test_walking", tmp_path)
     assert s["joints_matched"] == 6, s["unmatched_ref"]
-    assert s["joint_rms_mean_mm"] <= 50.0, s["per_joint_rms_mm"]
+    assert s["joint_rms_mean_mm"] <= 36.0, s["per_joint_rms_mm"]
     assert s["pairs_adjacent_in_bvh"] == s["pairs_scored"] >= 3  # every scored leg bone is a bone of the tree
     assert s["bone_err_mm_mean"] <= 12.0, s["bones"]
 

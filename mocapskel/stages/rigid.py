@@ -21,7 +21,7 @@ from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 13
+VERSION = 14
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,10 @@ class Params:
     """A joint is a hinge when the spread of its relative rotations about their second axis is at
     most this fraction of the spread about the first."""
     hold_hinges: bool = True
-    """Joints the joints stage placed as hinges keep their position along the hinge axis,
-    relative to their two segments' markers, in the refinement (the markers hardly fix it; the
-    joints stage put it in the plane of the neighbouring joints)."""
+    """Joints the joints stage placed as hinges, and joints SCoRE fixed in full whose motion turns
+    about one axis (``hinge_ratio``), keep their position along that axis, relative to their two
+    segments' markers, in the refinement (the markers hardly fix it; the joints stage put it in
+    the plane of the neighbouring joints, or SCoRE where its least squares put it)."""
     hold_weight: float = 0.01
     """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
     wherever they fix the position."""
@@ -154,9 +155,10 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             if "refined" in one[1].info:
                 a = one[1].info["refined"]["marker_rms_mm_after"]
                 b = two[1].info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                bad_one, bad_two = bool(far_joints(one[1], params.far)), two is None or bool(far_joints(two[1], params.far))
+                bad_one = len(implausible_joints(one[1], params.far))
+                bad_two = np.inf if two is None else len(implausible_joints(two[1], params.far))
                 if bad_one != bad_two:  # never a lower residual bought with a joint off its markers
-                    win = 1 if bad_one else 0
+                    win = 1 if bad_one > bad_two else 0
                 else:
                     win = 1 if b is not None and b < a else 0
                 st, part, hold = (one, two)[win]
@@ -312,6 +314,16 @@ def far_joints(skel: Skeleton, far: float) -> list[int]:
     return out
 
 
+def implausible_joints(skel: Skeleton, far: float) -> list[int]:
+    """Segments whose joint to their parent no body has: :func:`far_joints`, or a bone (the joint's
+    distance from the parent's joint) longer than the subject's marker extent at rest (the
+    ``bone_length`` check's rule)."""
+    lim = _extent(_rest_markers(skel))
+    long = [int(c) for c in np.flatnonzero(skel.parent >= 0)
+            if float(np.linalg.norm(skel.origin[c] - skel.origin[skel.parent[c]])) > lim]
+    return sorted(set(far_joints(skel, far)) | set(long))
+
+
 def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
     """Segments whose joint to their parent moved, relative to the markers of the parent or of the child,
     by more than ``slide`` times the subject's marker extent between two fits (rest-pose axes)."""
@@ -406,11 +418,11 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
     if anchor is not None and skel.pose_frames is not None and np.array_equal(skel.pose_frames, use):
         rot, root = skel.pose_rot, skel.pose_root  # a refinement's own poses on these frames
         if hold is None:
-            hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot) if params.hold_hinges else {}
+            hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot, params.hinge_ratio) if params.hold_hinges else {}
     else:
         start = solve(skel, pts[use], centres[use])
         rot, root = start.rot, start.root_pos
-        hold = _hinge_axes(skel, start.rot) if params.hold_hinges else {}
+        hold = _hinge_axes(skel, start.rot, params.hinge_ratio) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           rot, root, ref_frame=ref,
                           iterations=params.refine_iterations if iterations is None else iterations,
@@ -532,25 +544,34 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local, info=info)
 
 
-def _hinge_axes(skel: Skeleton, rot: np.ndarray) -> dict[int, np.ndarray]:
-    """{child segment: hinge axis (rest-pose axes)} of the joints the joints stage placed as hinges.
+def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int, np.ndarray]:
+    """{child segment: hinge axis (rest-pose axes)} of the joints whose centre the markers hardly fix
+    along one axis: those the joints stage placed as hinges, and those SCoRE fixed in full whose
+    relative rotations ``R_parent^T R_child`` of ``rot`` (F, S, 3, 3) turn about one axis (spread
+    about the second axis at most ``hinge_ratio`` of the first, as :func:`deepen_joints`): a walk's
+    ankle, which SCoRE solves by least squares along an axis its motion barely fixes.
 
-    The axis is the direction the relative rotations ``R_parent^T R_child`` of
-    ``rot`` (F, S, 3, 3) leave most nearly fixed: the eigenvector of SCoRE's
-    ``[[I, -M], [-M^T, I]]`` (``M`` their mean) of the smallest eigenvalue.
+    The axis is the direction the relative rotations leave most nearly fixed: the eigenvector of
+    SCoRE's ``[[I, -M], [-M^T, I]]`` (``M`` their mean) of the smallest eigenvalue.
     """
     joints = skel.joints
     per = joints.info.get("per_joint") or []
     out = {}
     for e, (a, b) in enumerate(joints.topology.edges):
-        if e >= len(per) or not per[e].get("hinge"):
-            continue
+        placed = e < len(per) and per[e].get("hinge")
+        if not placed and joints.method[e] != "score":
+            continue  # a joint of a one- or two-marker segment: its start is too rough to hold
         c = int(b) if skel.parent[int(b)] == int(a) else int(a)
         p = int(skel.parent[c])
         ok = np.isfinite(rot[:, p, 0, 0]) & np.isfinite(rot[:, c, 0, 0])
         if ok.sum() < 10:
             continue
-        M = (np.swapaxes(rot[ok, p], 1, 2) @ rot[ok, c]).mean(0)
+        rel = np.swapaxes(rot[ok, p], 1, 2) @ rot[ok, c]
+        if not placed:
+            sv = np.linalg.svd(_relative_rotvecs(rel), compute_uv=False)
+            if not sv[0] > 0 or sv[1] > hinge_ratio * sv[0]:
+                continue
+        M = rel.mean(0)
         N = np.eye(6)
         N[:3, 3:] = -M
         N[3:, :3] = -M.T
