@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["kabsch", "shape_poses", "procrustes_shape"]
+__all__ = ["kabsch", "shape_poses", "procrustes_shape", "beyond_hull"]
 
 #: Default for ``collinear_tol``: usable points whose second principal spread is
 #: below this fraction of the first are treated as collinear.
@@ -687,3 +687,21 @@ def _rodrigues(rv: np.ndarray) -> np.ndarray:
     R[:, 1, 2] = by * z - ax
     R[:, 2, 1] = by * z + ax
     return R
+
+
+def beyond_hull(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """How far each of ``queries`` (Q, 3) lies outside the convex hull of ``points`` (N, 3) (NaN rows
+    left out): its distance beyond the hull's farthest facet plane, negative inside. A lower bound
+    of the distance to the hull, exact where the nearest point of the hull lies on a facet. All
+    -inf when fewer than 5 points or all in a plane (no inside to be outside of)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    P = points[np.isfinite(points).all(1)]
+    q = np.asarray(queries, dtype=float).reshape(-1, 3)
+    if len(P) < 5:
+        return np.full(len(q), -np.inf)
+    try:
+        eq = ConvexHull(P).equations
+    except QhullError:
+        return np.full(len(q), -np.inf)
+    return (q @ eq[:, :3].T + eq[:, 3]).max(axis=1)
