@@ -38,12 +38,13 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
-    trial_iterations: int = 20
+    trial_iterations: int = 60
     """With two starts (see :func:`run`), the iterations each gets before the better is chosen and
-    alone refined to the end (on both cores). Fewer picks the wrong start on two-marker skeletons
-    (their residuals cross late: at 10 iterations a real walk's choice differed from the one at 60);
-    on 20 real takes with two starts, the choice at 20 iterations differs from the one at 60 only
-    where the two are within 0.4 % of each other, and the refinement costs a third less."""
+    alone refined to the end. Fewer pick the wrong start on two-marker skeletons: their residuals
+    cross late (a generated two-marker take, 1 min with gaps: 2.00 against 1.85 mm after 20
+    iterations, 1.74 against 1.78 mm after 60; chosen at 20, its joints are 54 mm off instead of
+    6 mm). On real takes the choice at 20 differs from the one at 60 only where the two are within
+    0.4 % of each other, and would make the refinement a third cheaper."""
     joint_prior: float = 0.01
     """Weight (per frame) of the prior that holds each joint where the joints stage put it
     relative to the markers of its two segments (see
