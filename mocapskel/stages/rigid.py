@@ -335,14 +335,19 @@ def outside_joints(skel: Skeleton, frac: float) -> list[int]:
     return [int(c) for c, d in zip(kids, out) if d > lim]
 
 
+def off_the_body(skel: Skeleton, far: float, outside: float) -> list[int]:
+    """Segments whose joint to their parent is off the body: :func:`far_joints` or :func:`outside_joints`."""
+    return sorted(set(far_joints(skel, far)) | set(outside_joints(skel, outside)))
+
+
 def implausible_joints(skel: Skeleton, far: float, outside: float) -> list[int]:
-    """Segments whose joint to their parent no body has: :func:`far_joints`, :func:`outside_joints`, or a
-    bone (the joint's distance from the parent's joint) longer than the subject's marker extent at
-    rest (the ``bone_length`` check's rule)."""
+    """Segments whose joint to their parent no body has: :func:`off_the_body`, or a bone (the joint's
+    distance from the parent's joint) longer than the subject's marker extent at rest (the
+    ``bone_length`` check's rule)."""
     lim = _extent(_rest_markers(skel))
     long = [int(c) for c in np.flatnonzero(skel.parent >= 0)
             if float(np.linalg.norm(skel.origin[c] - skel.origin[skel.parent[c]])) > lim]
-    return sorted(set(far_joints(skel, far)) | set(outside_joints(skel, outside)) | set(long))
+    return sorted(set(off_the_body(skel, far, outside)) | set(long))
 
 
 def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
@@ -385,7 +390,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
         out = replace(out, info=info)
     if "refined" not in out.info:
         return out
-    far = sorted(set(far_joints(out, params.far)) | set(outside_joints(out, params.outside)))
+    far = off_the_body(out, params.far, params.outside)
     bad = sorted(set(far) | set(slid_joints(skel, out, params.slide)))
     if bad and params.joint_prior > 0:
         # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
@@ -462,6 +467,15 @@ def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
     return matrix_to_rotvec(np.swapaxes(project_to_so3(rel.sum(0)), 0, 1)[None] @ rel)
 
 
+def _hinge_direction(rel: np.ndarray, hinge_ratio: float) -> np.ndarray | None:
+    """The axis the relative rotations ``rel`` (F, 3, 3) turn about when they turn about one (their
+    spread about the second axis at most ``hinge_ratio`` of the first: a hinge); None otherwise."""
+    _, sv, Vt = np.linalg.svd(_relative_rotvecs(rel), full_matrices=False)
+    if not sv[0] > 0 or sv[1] > hinge_ratio * sv[0]:
+        return None
+    return Vt[0]
+
+
 def _bone_line(skel: Skeleton, s: int) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Segment ``s``'s joint, the unit direction to the mean of its child joints and that length;
     None for a root, a leaf or a zero length."""
@@ -526,10 +540,9 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
         rel = rel[np.isfinite(rel).all((1, 2))]
         if len(rel) < 10:
             continue
-        _, sv, Vt = np.linalg.svd(_relative_rotvecs(rel), full_matrices=False)
-        if not sv[0] > 0 or sv[1] > hinge_ratio * sv[0]:
+        ax = _hinge_direction(rel, hinge_ratio)
+        if ax is None:
             continue
-        ax = Vt[0]
         J = origin[c]
         near = [int(m) for m in np.flatnonzero(ok_m & np.isin(skel.marker_segment, [p, c]))]
         t = {m: float((pos[m] - J) @ ax) for m in near}
@@ -569,7 +582,7 @@ def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int
     """{child segment: hinge axis (rest-pose axes)} of the joints whose centre the markers hardly fix
     along one axis: those the joints stage placed as hinges, and those SCoRE fixed in full whose
     relative rotations ``R_parent^T R_child`` of ``rot`` (F, S, 3, 3) turn about one axis (spread
-    about the second axis at most ``hinge_ratio`` of the first, as :func:`deepen_joints`): a walk's
+    about the second axis at most ``hinge_ratio`` of the first: :func:`_hinge_direction`): a walk's
     ankle, which SCoRE solves by least squares along an axis its motion barely fixes.
 
     The axis is the direction the relative rotations leave most nearly fixed: the eigenvector of
@@ -588,10 +601,8 @@ def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int
         if ok.sum() < 10:
             continue
         rel = np.swapaxes(rot[ok, p], 1, 2) @ rot[ok, c]
-        if not placed:
-            sv = np.linalg.svd(_relative_rotvecs(rel), compute_uv=False)
-            if not sv[0] > 0 or sv[1] > hinge_ratio * sv[0]:
-                continue
+        if not placed and _hinge_direction(rel, hinge_ratio) is None:
+            continue
         M = rel.mean(0)
         N = np.eye(6)
         N[:3, 3:] = -M
