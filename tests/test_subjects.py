@@ -131,3 +131,23 @@ def test_fit_writes_one_bvh_per_subject_and_the_reports_list_them(two, tmp_path:
     r = CliRunner().invoke(cli, ["fit", str(d / "two.c3d"), "-o", str(out), "--cache-dir", str(cache)])
     assert r.exit_code == 0, r.stderr
     assert r.stderr.count("cached — skipping") == 2 + 2 * 5
+
+
+def test_single_linkage_matches_scipy():
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    from mocapskel.subjects import _components, single_linkage
+
+    rng = np.random.default_rng(5)
+    for M in (2, 3, 8, 40, 120):
+        X = rng.normal(size=(M, 3)) * rng.uniform(0.1, 10, size=(M, 1))
+        D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+        Z = linkage(squareform(D, checks=False), method="single")
+        edges = single_linkage(D)
+        np.testing.assert_allclose(edges[:, 2], Z[:, 2], rtol=1e-12)
+        for k in range(1, M):  # every cut: the same partition as scipy's
+            ours = _components(M, edges[:k])
+            theirs = fcluster(Z, t=Z[k - 1, 2], criterion="distance")
+            pairs = ours[:, None] == ours[None]
+            assert np.array_equal(pairs, theirs[:, None] == theirs[None])

@@ -16,7 +16,7 @@ import numpy as np
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
 from ..io.bvh import depth_first_order, sanitize_names
-from ..parallel import run_blocks
+from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
@@ -153,7 +153,7 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             skel = refine(skel, params, joints.centres)
         else:
             # a second start (the joints stage's framework trajectories): both are refined for a few
-            # iterations side by side on the cores, and the better is refined to the end
+            # iterations side by side, in two processes, and the better is refined to the end
             def trial(which: int) -> tuple[Skeleton, Skeleton, dict] | None:
                 c = joints.centres if which == 0 else joints.alt_centres
                 try:
@@ -162,7 +162,13 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                     return None
                 return (st, *_refine_once(st, params, c, 0.0, iterations=params.trial_iterations))
 
-            one, two = run_blocks(trial, [0, 1])
+            def light(which: int):
+                # sent back from a forked process: without the take (the same ``joints`` here)
+                got = trial(which)
+                return None if got is None else (replace(got[0], joints=None), replace(got[1], joints=None), got[2])
+
+            one, two = [None if got is None else (replace(got[0], joints=joints), replace(got[1], joints=joints), got[2])
+                        for got in run_forked(light, [0, 1])]
             if "refined" in one[1].info:
                 a = one[1].info["refined"]["marker_rms_mm_after"]
                 b = two[1].info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None

@@ -1,0 +1,83 @@
+"""Tasks shared out between threads and forked processes: the same results as one after the other."""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from mocapskel import parallel
+from mocapskel.parallel import n_threads, run_blocks, run_forked
+
+PARENT = os.getpid()
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="run_forked forks on Linux only")
+
+
+def _work(x: int) -> tuple[int, float, int, int]:
+    v = np.linalg.norm(np.random.default_rng(x).normal(size=(50, 50)) @ np.ones(50))
+    return x, float(v), os.getpid(), n_threads()
+
+
+def test_run_forked_gives_the_results_in_order(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "3")
+    items = list(range(7))
+    got = run_forked(_work, items)
+    want = [_work(x) for x in items]
+    assert [g[:2] for g in got] == [w[:2] for w in want]
+    assert parallel._FORCED is None  # left as found
+
+
+@linux_only
+def test_run_forked_runs_in_other_processes_each_on_one_thread(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    got = run_forked(_work, range(4))
+    pids = {g[2] for g in got}
+    assert PARENT in pids and len(pids) > 1
+    assert all(g[3] == 1 for g in got)  # inside a task, run_blocks uses one thread
+    assert n_threads() == 2
+
+
+def test_run_forked_on_one_core_stays_in_this_process(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "1")
+    assert {g[2] for g in run_forked(_work, range(3))} == {PARENT}
+
+
+def _fails_on_two(x: int) -> int:
+    if x == 2:
+        raise ValueError(f"bad item {x}")
+    return x
+
+
+def test_run_forked_raises_a_child_error_here(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    with pytest.raises(ValueError, match="bad item 2"):
+        run_forked(_fails_on_two, range(4))
+    assert parallel._FORCED is None
+
+
+def _dies_in_a_child(x: int) -> int:
+    if os.getpid() != PARENT:
+        os._exit(3)  # killed before it could answer
+    return 10 * x
+
+
+@linux_only
+def test_run_forked_redoes_here_what_a_dead_child_did_not_send(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    assert run_forked(_dies_in_a_child, range(4)) == [0, 10, 20, 30]
+
+
+def _unpicklable(x: int):
+    return (x, (lambda: x) if os.getpid() != PARENT else None)
+
+
+@linux_only
+def test_run_forked_redoes_here_a_result_that_does_not_pickle(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    assert [g[0] for g in run_forked(_unpicklable, range(3))] == [0, 1, 2]
+
+
+def test_run_blocks_and_run_forked_agree(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    assert [g[:2] for g in run_blocks(_work, range(5))] == [g[:2] for g in run_forked(_work, range(5))]
