@@ -20,6 +20,7 @@ import numpy as np
 
 from ..artifacts import Segments, Topology
 from ..errors import DataError
+from ..parallel import n_threads, run_forked
 from ..solvers.jmv import distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
@@ -193,23 +194,35 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
     on_sub: dict[tuple[int, int], np.ndarray] = {}  # (a, b), a < b: the joint on the common subsample
-    for a in range(S):
-        for b in range(a + 1, S):
-            fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
-            if not fr.size:
+    def cost_pair(ab: tuple[int, int]):
+        a, b = ab
+        fr = pair_frames(seen[:, a], seen[:, b], frames, params.n_frames)
+        if not fr.size:
+            return None
+        if fr.size == frames.size and np.array_equal(fr, frames):
+            at = sub
+            q, c = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
+                             frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]), return_centre=True)
+        else:
+            pf = pts[fr]
+            at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
+            q, c = pair_cost(at[:, members[a]], at[:, members[b]], alpha=alpha, frames=np.arange(at.shape[0]),
+                             return_centre=True)
+        return q, (c if at is sub else None), _nearer_elsewhere(c, at, members, a, b, params.nearer)
+
+    # the pairs are independent: shared out between processes (each pair's cost is the same either way)
+    pairs = [(a, b) for a in range(S) for b in range(a + 1, S)]
+    k = max(1, min(n_threads(), len(pairs) // 8))
+    shares = run_forked(lambda j: [cost_pair(ab) for ab in pairs[j::k]], range(k))
+    for j in range(k):
+        for (a, b), got in zip(pairs[j::k], shares[j]):
+            if got is None:
                 continue
-            if fr.size == frames.size and np.array_equal(fr, frames):
-                at = sub
-                q, c = pair_cost(sub[:, members[a]], sub[:, members[b]], alpha=alpha,
-                                 frames=np.arange(sub.shape[0]), bases=(bases[a], bases[b]), return_centre=True)
-                on_sub[a, b] = c
-            else:
-                pf = pts[fr]
-                at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
-                q, c = pair_cost(at[:, members[a]], at[:, members[b]], alpha=alpha, frames=np.arange(at.shape[0]),
-                                 return_centre=True)
+            q, c, far = got
             C[a, b] = C[b, a] = q
-            elsewhere[a, b] = elsewhere[b, a] = _nearer_elsewhere(c, at, members, a, b, params.nearer)
+            elsewhere[a, b] = elsewhere[b, a] = far
+            if c is not None:
+                on_sub[a, b] = c
     # a joint that sits nearer to a third segment's markers than to its own two is not theirs (two
     # limbs that swing about one axis "join" on it, inside the trunk): taken only if nothing else connects
     C = np.where(elsewhere, C * params.elsewhere_factor, C)
