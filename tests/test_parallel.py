@@ -81,3 +81,24 @@ def test_run_forked_redoes_here_a_result_that_does_not_pickle(monkeypatch) -> No
 def test_run_blocks_and_run_forked_agree(monkeypatch) -> None:
     monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
     assert [g[:2] for g in run_blocks(_work, range(5))] == [g[:2] for g in run_forked(_work, range(5))]
+
+
+def test_a_fit_is_the_same_on_one_core_and_on_several(monkeypatch, tmp_path) -> None:
+    """The rigid stage refines its two starts in forked processes and the topology costs its pairs in
+    shares: the skeleton and every pose are the same, bit for bit, as one process alone gives."""
+    from mocapskel import pipeline
+    from mocapskel.synth.presets import active_rom, make
+
+    take = make(active_rom(2, frames=1200, markers_per_segment=2))
+    out = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("MOCAPSKEL_THREADS", threads)
+        res = pipeline.fit(take.markers, pipeline.make_params())
+        assert res.motion.skeleton.joints.alt_centres is not None  # two starts were refined
+        out[threads] = res.motion
+    one, two = out["1"], out["2"]
+    np.testing.assert_array_equal(one.skeleton.origin, two.skeleton.origin)
+    np.testing.assert_array_equal(one.skeleton.marker_local, two.skeleton.marker_local)
+    np.testing.assert_array_equal(one.skeleton.joints.topology.pair_cost, two.skeleton.joints.topology.pair_cost)
+    np.testing.assert_array_equal(one.rot, two.rot)
+    np.testing.assert_array_equal(one.root_pos, two.root_pos)
