@@ -20,6 +20,7 @@ import os
 import pickle
 import selectors
 import sys
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
@@ -102,7 +103,11 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
             while len(pending) > 1 and len(running) < k - 1:  # children take the later items
                 i = pending.pop()
                 r, w = os.pipe()
-                pid = os.fork()
+                with warnings.catch_warnings():
+                    # Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
+                    # threads, which their library quiesces across a fork, and none of our own
+                    warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
+                    pid = os.fork()
                 if pid == 0:
                     _child(fn, items[i], r, w)
                 os.close(w)
