@@ -57,6 +57,9 @@ def chain_cases() -> str:
 
 def main() -> None:
     print("### Human range-of-motion takes, end to end (`fit` from a C3D file, no cache)\n")
+    print("Peak RSS: the fitting process's own; the work it forks out (the topology's pair costs, the rigid "
+          "stage's second refinement start) runs in copies of it that share its pages, not counted here "
+          "(the CLI rows of the speed section count them).\n")
     print(human_cases())
     print("\n### Kirk's linkage (0.5 mm noise, 20 s): middle link length, actual 34.1 cm (Kirk Table 1: mean error 0.58 cm, 1.7 %)\n")
     print(linkage_cases())
