@@ -79,6 +79,7 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     running: dict[int, tuple[int, int, bytearray]] = {}  # read end -> (item, pid, bytes so far)
     sel = selectors.DefaultSelector()
     prev = _FORCED
+
     def collect(timeout: float | None) -> None:
         # read what the children have sent; a child whose pipe is closed is done
         for key, _ in sel.select(timeout):
