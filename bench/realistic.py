@@ -32,7 +32,7 @@ REAL_REF = REPO.parent / "shared" / "realref"
 PAIRS = [("LTHI", "LKNE"), ("LKNE", "LSHN"), ("LSHN", "LANK"), ("LKNE", "LANK"), ("LFWT", "LTHI"), ("LUPA", "LELB"),
          ("LELB", "LFRM"), ("LFRM", "LWRA"), ("LWRA", "LWRB"), ("LWRB", "LFIN"), ("LANK", "LHEE"), ("LHEE", "LTOE"),
          ("LFHD", "LBHD"), ("C7", "CLAV"), ("C7", "T10"), ("CLAV", "STRN"), ("LFWT", "RFWT"), ("LFWT", "LBWT"),
-         ("LSHO", "C7"), ("LSHO", "LUPA")]  # fmt: skip
+         ("LSHO", "C7"), ("LSHO", "LUPA"), ("LUPA", "LWRA"), ("RUPA", "RWRA")]  # fmt: skip
 
 
 def _segments_either(marker_segment: np.ndarray, labels: tuple[str, ...], truth) -> tuple[bool, int]:

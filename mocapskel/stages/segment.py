@@ -18,9 +18,10 @@ import numpy as np
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
+from ..solvers.partition import best_split, rigid_rms, scatter_in_frame
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 5
+VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,9 @@ class Params:
     rigid marker plates on one bone) does not locate a joint between them."""
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
+    split_nonrigid: bool = True
+    """Split a group in two where its markers keep their distances but do not move as one body
+    (see :func:`split_nonrigid`)."""
     seed: int = 0
 
 
@@ -354,6 +358,65 @@ def pair_lone_markers(
     return lab, moves + more
 
 
+#: Frames of the search for a group's split (the checks use every sampled frame).
+SPLIT_FRAMES = 150
+#: Fewer sampled frames than this with a group's markers all seen: its rigidity is not tested.
+SPLIT_MIN_FRAMES = 20
+
+
+def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau: float, reveal: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[list[np.ndarray], float]]]:
+    """Split each group that keeps its distances but does not move as one rigid body into two that do.
+
+    Average linkage groups markers by their distance stds, and distances tell segments apart
+    only to second order where markers lie nearly in line with the joint between them (a trunk
+    bending over a still pelvis and leg). A group of six or more markers whose rigid-fit
+    residual exceeds the rigid tolerance ``tau`` is split in two (:func:`best_split`) when
+    - each part has at least three markers and a rigid-fit residual within ``tau``;
+    - the distance stds agree: each part's markers vary less among themselves, on average,
+      than against the other part's;
+    - the parts move against each other by more than ``reveal`` (rms, one part's markers in
+      the other's frame): the same bar as for a lone marker, below which the joint between
+      them could not be located (skin and breathing move parts of one body by less).
+    Parts are tested again. points : (K, M, 3) the sampled frames; std : (M, M) distance stds;
+    labels : (M,) groups. Returns the new labels (numbered by first marker) and each split
+    (its two parts' marker indices, the group's rigid-fit rms).
+    """
+    lab = np.array(labels, dtype=int)
+    splits: list[tuple[list[np.ndarray], float]] = []
+    queue = [np.flatnonzero(lab == g) for g in range(lab.max() + 1)]
+    while queue:
+        idx = queue.pop(0)
+        if idx.size < 6:
+            continue
+        P = points[:, idx]
+        P = P[np.isfinite(P).all(axis=(1, 2))]
+        if len(P) < SPLIT_MIN_FRAMES:
+            continue
+        r = rigid_rms(P)
+        if not r > tau:
+            continue
+        Ps = P[np.unique(np.linspace(0, len(P) - 1, min(SPLIT_FRAMES, len(P))).round().astype(int))]
+        part = best_split(Ps, rng)
+        if part is None:
+            continue
+        parts = [np.flatnonzero(part == k) for k in (0, 1)]
+        if max(rigid_rms(P, p) for p in parts) > tau:
+            continue
+        S = std[np.ix_(idx, idx)]
+        within = [np.nanmean(S[np.ix_(p, p)][~np.eye(p.size, dtype=bool)]) for p in parts]
+        if not np.nanmean(S[np.ix_(parts[0], parts[1])]) > max(within):
+            continue
+        moved = max(float(np.sqrt((scatter_in_frame(P, parts[k])[parts[1 - k]] ** 2).mean())) for k in (0, 1))
+        if not moved > reveal:
+            continue
+        lab[idx[parts[1]]] = lab.max() + 1
+        splits.append(([idx[p] for p in parts], r))
+        queue += [idx[p] for p in parts]
+    first: dict[int, int] = {}
+    return np.array([first.setdefault(int(g), len(first)) for g in lab], dtype=int), splits
+
+
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
                         reach: float, nearest: bool = False) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Each marker alone in its group that varies against its nearest group of several markers (mean
@@ -470,6 +533,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             )
     sigma, k_auto, eig = choose_sigma(pooled, params.sigma_mm, k)
     split = []
+    split_info: list[dict] = []
     if k is None:
         # the rigid groups at the take's own tolerance, then markers left alone given a place
         lab = rigid_groups(pooled, tau)
@@ -492,6 +556,11 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             lab, more = absorb_lone_markers(pooled, mean_d, lab, float(np.sqrt(level * np.median(ext))), 2.0 * reach,
                                             nearest=True)
             moves += more
+            if params.split_nonrigid:
+                lab, splits = split_nonrigid(markers.points[samplings[0]][:, iu], pooled, lab, tau,
+                                             float(np.sqrt(level * np.median(ext))), np.random.default_rng(params.seed))
+                split_info = [{"parts": [[markers.labels[iu[i]] for i in part] for part in parts],
+                               "rigid_rms_mm": round(r, 3)} for parts, r in splits]
         split = [[markers.labels[iu[i]], how] for i, how in moves]
         si = 0
         cost = spread_cost(pooled, lab)
@@ -531,6 +600,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         "left_out": [markers.labels[i] for i in np.flatnonzero(~use)],
         "groups": [[markers.labels[i] for i in np.flatnonzero(group == g)] for g in range(n)],
         "moved": split,
+        "split_nonrigid": split_info,
         "skin_level_mm": level,
         "size_mm": size,
         "rigid_tolerance_mm": tau,
