@@ -225,6 +225,11 @@ def test_walk_has_gait_ranges_and_travels(walk):
         lat -= np.sum(lat * ax, 1)[:, None] * ax
         rot = np.degrees(np.arctan2(lat[:, 0], np.abs(lat[:, 1])))
         assert np.ptp(rot) < 20.0
+        # elbows swing through about 30 deg (CMU's walks vary the upper-arm-to-wrist distance by 6-12 mm)
+        a = tr.joints[:, J[side + "Elbow"]] - tr.joints[:, J[side + "Shoulder"]]
+        b = tr.joints[:, J[side + "Wrist"]] - tr.joints[:, J[side + "Elbow"]]
+        elbow = np.degrees(np.arccos(np.sum(a * b, 1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)))
+        assert 20.0 <= np.ptp(elbow) <= 45.0 and elbow.min() >= 5.0
     root = tr.joints[:, J["Lumbar"]]
     assert np.linalg.norm(root[-1, :2] - root[0, :2]) > 5000.0  # 5 s at ~1.3 m/s, straight on
 

@@ -7,6 +7,11 @@ Gaussian affinities that Ng–Jordan–Weiss spectral clustering splits into
 groups. Several samplings are clustered and the clustering with the smallest
 within-group spread is kept (a RANSAC-like guard against sporadic jumps). The
 number of groups is given or taken from the eigen-gap.
+
+Without a given number, the groups are the rigid groups at the take's own tolerance
+(average linkage), lone markers then given a place; a group that keeps its distances
+but does not move as one body (its rigid-fit residual above the tolerance) is then
+split in two (:func:`split_nonrigid`).
 """
 from __future__ import annotations
 
