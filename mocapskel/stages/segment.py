@@ -188,6 +188,12 @@ def _median_distance(d: np.ndarray) -> float:
     return float(np.median(v)) if v.size else float("nan")
 
 
+def by_first_marker(labels) -> np.ndarray:
+    """Group labels renumbered 0.. in the order of each group's first marker."""
+    first: dict[int, int] = {}
+    return np.array([first.setdefault(int(g), len(first)) for g in labels], dtype=int)
+
+
 def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
     """(M,) labels 0.. of the average-linkage groups of ``std`` (M, M) cut at ``rigid_mm``.
 
@@ -199,8 +205,7 @@ def rigid_groups(std: np.ndarray, rigid_mm: float) -> np.ndarray:
     D = 0.5 * (D + D.T)
     _, root = _average_linkage(D, rigid_mm)
     _, lab = np.unique(root, return_inverse=True)
-    first = {}
-    return np.array([first.setdefault(int(g), len(first)) for g in lab.reshape(-1)], dtype=int) if M else lab
+    return by_first_marker(lab.reshape(-1)) if M else lab
 
 
 def average_linkage_heights(D: np.ndarray) -> np.ndarray:
@@ -249,8 +254,7 @@ def merge_still_groups(std: np.ndarray, labels: np.ndarray, stop: float) -> np.n
     size = onehot.sum(0)
     D = (onehot.T @ S @ onehot) / np.outer(size, size)
     _, root = _average_linkage(D, stop, size)
-    first: dict[int, int] = {}
-    return np.array([first.setdefault(int(root[g]), len(first)) for g in labels], dtype=int)
+    return by_first_marker(root[labels])
 
 
 def skin_level(std: np.ndarray, floor: float = 0.0) -> float:
@@ -418,8 +422,7 @@ def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau:
         lab[idx[parts[1]]] = lab.max() + 1
         splits.append(([idx[p] for p in parts], r))
         queue += [idx[p] for p in parts]
-    first: dict[int, int] = {}
-    return np.array([first.setdefault(int(g), len(first)) for g in lab], dtype=int), splits
+    return by_first_marker(lab), splits
 
 
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
@@ -446,8 +449,7 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
             if c <= tau_free:
                 lab[m] = g
                 moves.append((m, "absorbed"))
-    first: dict[int, int] = {}
-    return np.array([first.setdefault(int(g), len(first)) for g in lab], dtype=int), moves
+    return by_first_marker(lab), moves
 
 
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
