@@ -526,7 +526,10 @@ def _summary(report: dict, motion: Motion) -> str:
             _fmt(clean.get("jump_samples")), _fmt(clean.get("trimmed_samples")), _fmt(clean.get("short_runs")),
             _fmt(clean.get("short_run_samples")), _fmt(clean.get("dropped_markers") or "none"))),
         ("segments", f"{len(report.get('segments', []))}"
-                     + (f" (markers left out: {_fmt(report.get('segments_left_out'))})" if report.get("segments_left_out") else "")),
+                     + (f" (markers left out: {_fmt(report.get('segments_left_out'))})" if report.get("segments_left_out") else "")
+                     + "".join(f"; a group that did not move as one body ({_fmt(d.get('rigid_rms_mm'))} mm rigid-fit rms) split into "
+                               + " | ".join(_fmt(" ".join(map(str, part))) for part in d.get("parts", []))
+                               for d in report.get("segments_split") or [])),
         ("joints", f"{len(report.get('joints', []))}, root {_fmt((report.get('topology') or {}).get('root'))}"),
         ("rest frame", _fmt(report.get("rest_frame"))),
         ("IK marker rms", f"{_fmt(ik.get('marker_rms_mm'))} mm"),

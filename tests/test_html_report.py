@@ -187,6 +187,14 @@ def test_warnings_are_listed_and_escaped_and_long_takes_decimated(human):
     assert data["n"] <= 50 and data["step"] == math.ceil(res.motion.root_pos.shape[0] / 50)
 
 
+def test_groups_split_for_rigidity_are_listed_and_escaped(human):
+    _, res = human
+    split = [{"parts": [["C7", "T10", "<CLAV>"], ["LBWT", "RBWT", "LTHI"]], "rigid_rms_mm": 6.702}]
+    text = build_html(res.motion, dict(res.report, segments_split=split), max_frames=50)
+    assert "did not move as one body (6.7 mm rigid-fit rms) split into C7 T10 &lt;CLAV&gt; | LBWT RBWT LTHI" in text
+    assert "did not move as one body" not in build_html(res.motion, dict(res.report, segments_split=[]), max_frames=50)
+
+
 def test_a_motion_without_its_fit_chain_still_gets_a_page(human):
     """A skeleton read from a .skel file carries no joints, segments or markers: those sections say so."""
     _, res = human
