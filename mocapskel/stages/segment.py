@@ -410,13 +410,16 @@ def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau:
         if part is None:
             continue
         parts = [np.flatnonzero(part == k) for k in (0, 1)]
-        if max(rigid_rms(P, p) for p in parts) > tau:
+        # every marker's scatter in each part's frame: a part's own markers give its rigid-fit residual,
+        # the other part's how far the two move against each other
+        sc = [scatter_in_frame(P, p) for p in parts]
+        if max(float(np.sqrt((sc[k][parts[k]] ** 2).mean())) for k in (0, 1)) > tau:
             continue
         S = std[np.ix_(idx, idx)]
         within = [np.nanmean(S[np.ix_(p, p)][~np.eye(p.size, dtype=bool)]) for p in parts]
         if not np.nanmean(S[np.ix_(parts[0], parts[1])]) > max(within):
             continue
-        moved = max(float(np.sqrt((scatter_in_frame(P, parts[k])[parts[1 - k]] ** 2).mean())) for k in (0, 1))
+        moved = max(float(np.sqrt((sc[k][parts[1 - k]] ** 2).mean())) for k in (0, 1))
         if not moved > reveal:
             continue
         lab[idx[parts[1]]] = lab.max() + 1
@@ -560,12 +563,12 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             # a sphere fit's radius is known to about level / (d / R)^2 — no better than R itself unless
             # d > sqrt(level R)
             # (the largest segments, a pelvis or a trunk, are two or three times the median group's size)
-            lab, more = absorb_lone_markers(pooled, mean_d, lab, float(np.sqrt(level * np.median(ext))), 2.0 * reach,
-                                            nearest=True)
+            reveal = float(np.sqrt(level * np.median(ext)))
+            lab, more = absorb_lone_markers(pooled, mean_d, lab, reveal, 2.0 * reach, nearest=True)
             moves += more
             if params.split_nonrigid:
-                lab, splits = split_nonrigid(markers.points[samplings[0]][:, iu], pooled, lab, tau,
-                                             float(np.sqrt(level * np.median(ext))), np.random.default_rng(params.seed))
+                lab, splits = split_nonrigid(markers.points[samplings[0]][:, iu], pooled, lab, tau, reveal,
+                                             np.random.default_rng(params.seed))
                 split_info = [{"parts": [[markers.labels[iu[i]] for i in part] for part in parts],
                                "rigid_rms_mm": round(r, 3)} for parts, r in splits]
         split = [[markers.labels[iu[i]], how] for i, how in moves]
