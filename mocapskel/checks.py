@@ -27,6 +27,13 @@ the result against the take itself, with no template:
                     by more than 90 degrees while the fastest marker of its two
                     segments moves less than a tenth of its segment's extent
                     (two equivalent solutions swapped, not a fast turn);
+- ``limb_asymmetry`` in a skeleton recognised as a person (see
+                    :mod:`mocapskel.naming`), the same bone of the left and the
+                    right limb (thigh, shank, foot, upper arm, forearm, shoulder)
+                    longer on one side by more than a fifth: people's left and
+                    right long bones differ by a few per cent, so one side has a
+                    joint the markers did not fix (a hip a walk moves too little
+                    to place along the thigh);
 - ``not_converged`` joints whose centre fit stopped before converging.
 
 Every failing check is one :class:`Finding`: which check, the joint or segment
@@ -66,6 +73,8 @@ class Limits:
     """No optical capture volume holds a subject larger than this."""
     smallest_mm: float = 5.0
     """...nor one smaller than this."""
+    asymmetry: float = 0.2
+    """The same bone of a left and a right limb may be at most this fraction longer on one side."""
 
 
 @dataclass(frozen=True)
@@ -235,9 +244,41 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    f"frames (up to {rel[:, s].max():.0f} degrees) while its markers hardly move",
                                    tuple(bad.tolist())))
 
+    out.extend(_limb_asymmetry(motion, limits.asymmetry))
+
     for s, note in (joint_notes or {}).items():
         jn = _joint_name(names, parent, s)
         out.append(Finding("not_converged", jn, f"joint {jn}: the centre fit did not converge ({note})"))
+    return out
+
+
+def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
+    """The bones of a person's left and right limbs that differ by more than ``tol`` (a fraction)."""
+    from .naming import recognise
+
+    sk = motion.skeleton
+    naming = recognise(sk, motion)
+    if isinstance(naming, str):
+        return []  # not a person: no left and right to compare
+    parent = np.asarray(sk.parent)
+    off = np.linalg.norm(sk.offset, axis=1)
+    role = {n: s for s, n in enumerate(naming.names)}
+    out = []
+    for left, s_l in role.items():
+        if not left.startswith("Left") or "Right" + left[4:] not in role:
+            continue
+        s_r = role["Right" + left[4:]]
+        kids = [np.flatnonzero(parent == s) for s in (s_l, s_r)]
+        if any(k.size != 1 for k in kids):
+            continue  # a limb's end: no bone to the next joint
+        la, lb = float(off[kids[0][0]]), float(off[kids[1][0]])
+        if not (la > 0 and lb > 0) or max(la, lb) <= (1.0 + tol) * min(la, lb):
+            continue
+        part = left[4:]
+        out.append(Finding("limb_asymmetry", f"{sk.names[s_l]}/{sk.names[s_r]}",
+                           f"the left and right {part} ({sk.names[s_l]}, {sk.names[s_r]}) are {la:.0f} and {lb:.0f} mm long "
+                           f"({100 * (max(la, lb) / min(la, lb) - 1):.0f} % apart; a person's differ by a few per cent) — a "
+                           "joint of the longer or the shorter is poorly determined (the take hardly moves it)"))
     return out
 
 
