@@ -313,3 +313,35 @@ def test_a_hip_that_slides_out_of_the_body_is_held():
     assert rigid.outside_joints(free, rigid.Params().outside)
     err = {k: evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each["LThigh"] for k, s in (("held", skel), ("free", free))}
     assert err["held"] < 150.0 < 250.0 < err["free"], err
+
+
+def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
+    """Holding the joints that slid must not cost others their place: on a real functional trial (biobuddy
+    right_hip) the held refinement, within 4 % of the free fit's marker rms, slid three other joints 2 m
+    from their markers while the free fit had none off the body. The free fit is then kept."""
+    from mocapskel.synth.chains import hang_chain
+
+    take = hang_chain((4, 3, 3), 300, rng=np.random.default_rng(3), link_length=300.0)
+    joints = pipeline.run_until(take.markers, "joints").artifact
+    skel = rigid.run(joints, rigid.Params(refine_frames=0))
+    leaf = int(np.flatnonzero(skel.parent >= 0)[-1])
+    params = rigid.Params()
+
+    def fitted(sk, rms):
+        return replace(sk, info={**sk.info, "refined": {"marker_rms_mm_after": rms, "iterations": 5}})
+
+    free = fitted(skel, 2.00)
+    origin, local = skel.origin.copy(), skel.marker_local.copy()
+    origin[leaf] += [0.0, 0.0, 3000.0]  # 3 m from its markers, which stay where they were
+    local[skel.marker_segment == leaf] -= [0.0, 0.0, 3000.0]
+    held = fitted(replace(skel, origin=origin, marker_local=local), 2.05)  # within hold_tolerance
+    assert rigid.implausible_joints(held, params.far, params.outside) and not rigid.implausible_joints(free, params.far, params.outside)
+    calls = iter([(free, {}), (held, {})])
+    monkeypatch.setattr(rigid, "_refine_once", lambda *a, **k: next(calls))
+    monkeypatch.setattr(rigid, "slid_joints", lambda before, after, slide: [int(np.flatnonzero(skel.parent >= 0)[0])])
+    out = rigid.refine(skel, params)
+    assert out is free and "held_because" not in out.info["refined"]
+    # a hold that keeps every joint on the body, within the tolerance, is kept
+    calls = iter([(free, {}), (fitted(skel, 2.05), {})])
+    out = rigid.refine(skel, params)
+    assert out is not free and out.info["refined"]["held_because"]

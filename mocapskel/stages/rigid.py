@@ -21,7 +21,7 @@ from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 14
+VERSION = 15
 
 
 @dataclass(frozen=True)
@@ -404,8 +404,12 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
         held, _ = _refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel, hold=hold)
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
-        # A clearly worse fit: the markers needed the move (a rough start put right), so it stays
-        if held_rms <= (1.0 + params.hold_tolerance) * free_rms or far:
+        # A clearly worse fit: the markers needed the move (a rough start put right), so it stays.
+        # Never a hold that leaves more joints off the body than the free fit (holding two joints of a
+        # real take slid three others 2 m away, within the tolerance of the free fit's residual)
+        more_bad = (len(implausible_joints(held, params.far, params.outside))
+                    > len(implausible_joints(out, params.far, params.outside)))
+        if not more_bad and (held_rms <= (1.0 + params.hold_tolerance) * free_rms or far):
             info = dict(held.info)
             info["refined"] = dict(info["refined"], joint_prior=params.joint_prior,
                                    held_because=[skel.names[c] for c in bad], marker_rms_mm_unheld=free_rms)
