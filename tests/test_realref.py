@@ -184,3 +184,24 @@ def test_cmu_marker_set_trees_join_only_neighbouring_body_parts(path: str) -> No
         if A and B and not any(x == y or _PARENT.get(x) == y or _PARENT.get(y) == x for x in A for y in B):
             bad.append((sorted(A), sorted(B)))
     assert not bad, bad
+
+
+@pytest.mark.parametrize("path", ["realref/cmu_16_07.c3d", "realdata/cmu/07_01.c3d", "realdata/cmu/07_12.c3d",
+                                  "realdata/cmu/85_02.c3d", "realdata/hdm05/HDM_bd_05-01_01_120.c3d",
+                                  "realdata/hdm05/HDM_mm_01-02_03_120.c3d"])
+def test_cmu_marker_set_head_hangs_on_the_thorax(path: str) -> None:
+    """Six real takes of the CMU set: the head group joins only groups with a thorax marker (C7, T10,
+    CLAV, STRN, RBAC). Regressions: in a walk (07_12) and HDM05's bd take the head moves with the trunk,
+    and a two-marker upper-arm or shoulder group given the trunk's shoulder as an extra point "joined"
+    the head on that point by dilution alone."""
+    p = REALREF.parent / path
+    if not p.is_file():
+        pytest.skip(MISSING)
+    topo = pipeline.run_until(p, "topology").artifact
+    seg = topo.segments
+    names = [[str(seg.markers.labels[i]).split(":")[-1] for i in seg.members(s)] for s in range(seg.n_segments)]
+    head = [s for s in range(seg.n_segments) if {"LFHD", "RFHD", "LBHD", "RBHD"} & set(names[s])]
+    assert len(head) == 1, [names[s] for s in head]
+    nbrs = [b if a == head[0] else a for a, b in topo.edges.tolist() if head[0] in (a, b)]
+    thorax = {"C7", "T10", "CLAV", "STRN", "RBAC"}
+    assert nbrs and all(thorax & set(names[s]) for s in nbrs), [names[s] for s in nbrs]
