@@ -4,9 +4,10 @@ The joint cost of every pair of segments is computed on a drastic subsample of
 frames (with Kirk's small distance penalty α so that wrong joints cannot hide
 at infinity); the costs are then made again with each one- or two-marker
 segment given its cheapest joint as one more point (it fixes the segment's
-turn about its marker axis, which a joint with it otherwise leaves free); the
-skeleton's tree is the minimum spanning tree of those costs (Kruskal; equal
-costs are taken in pair order). The root is the tree's centre, like a pelvis.
+turn about its marker axis, which a joint with it otherwise leaves free; the
+point's variance counts, not its share of the mean cost); the skeleton's tree
+is the minimum spanning tree of those costs (Kruskal; equal costs are taken in
+pair order). The root is the tree's centre, like a pelvis.
 
 Only the subsample and the per-frame visibility of the segments depend on the
 length of the take; both are one pass over the visibility of the markers.
