@@ -251,7 +251,7 @@ def recognise(skel, motion=None) -> Naming | str:
         a, b = length[pair[0]], length[pair[1]]
         if not (min(a, b) > 0 and max(a, b) <= 1.5 * min(a, b)):
             return f"{what} of unequal length ({a:.0f} and {b:.0f} mm)"
-        if abs(len(chains[pair[0]]) - len(chains[pair[1]])) > 1:
+        if len(chains[pair[0]]) != len(chains[pair[1]]):
             return f"{what} of {len(chains[pair[0]])} and {len(chains[pair[1]])} segments"
     if length[head] >= min(length[i] for i in legs + arms):
         return "the head chain is not shorter than the limbs"
@@ -276,25 +276,13 @@ def recognise(skel, motion=None) -> Naming | str:
     for ci, side_name in ((left_leg, "Left"), (right_leg, "Right")):
         for s, n in zip(chains[ci], leg_parts):
             names[s] = side_name + n
-    arm_parts = {ci: (["Shoulder", "Arm", "ForeArm", "Hand"]
-                      if len(chains[ci]) == 4 or (len(chains[ci]) == 3 and seg_len[ci][0] < 0.7 * seg_len[ci][1])
-                      else ["Arm", "ForeArm", "Hand"]) for ci in (left_arm, right_arm)}
-    short, long_ = sorted((left_arm, right_arm), key=lambda ci: len(chains[ci]))
-    if len(chains[long_]) == len(chains[short]) + 1:
-        # one arm has one segment more (a hand or a shoulder split off on one side only): the arms' bones
-        # align where their lengths agree, the extra segment at that end
-        ls, ll = seg_len[short], seg_len[long_]
-        n = len(ls)
-        proximal = sum(abs(x - y) for x, y in zip(ll[1:], ls)) < sum(abs(x - y) for x, y in zip(ll[:n], ls))
-        if proximal:
-            arm_parts[short] = ["Arm", "ForeArm", "Hand"]
-            arm_parts[long_] = ["Shoulder", "Arm", "ForeArm", "Hand"]
-        else:
-            arm_parts[long_] = arm_parts[short] if arm_parts[short][0] == "Shoulder" else ["Arm", "ForeArm", "Hand"]
-        if len(chains[long_]) > len(arm_parts[long_]):
-            return f"arms of {len(chains[short])} and {len(chains[long_])} segments that do not align"
     for ci, side_name in ((left_arm, "Left"), (right_arm, "Right")):
-        for s, n in zip(chains[ci], arm_parts[ci]):
+        c = chains[ci]
+        if len(c) == 4 or (len(c) == 3 and seg_len[ci][0] < 0.7 * seg_len[ci][1]):
+            parts = ["Shoulder", "Arm", "ForeArm", "Hand"]
+        else:
+            parts = ["Arm", "ForeArm", "Hand"]
+        for s, n in zip(c, parts):
             names[s] = side_name + n
     if any(not n for n in names):  # pragma: no cover - every segment is in the trunk or a chain
         return "a segment has no place in a person"
@@ -312,8 +300,7 @@ def recognise(skel, motion=None) -> Naming | str:
         joint_names.append(sd + JOINT_OF.get(base, "Neck" if base == "Head" and len(head_chain) == 1 else
                                              "UpperNeck" if base == "Head" else base))
     legs_seg = (chains[left_leg][0], chains[right_leg][0])
-    counts = {what: " and ".join(sorted({str(len(chains[i])) for i in pair})) for what, pair in (("legs", legs), ("arms", arms))}
-    note = f"recognised as a person ({len(trunk)}-segment trunk, legs of {counts['legs']}, arms of {counts['arms']} segments; left/right from {side_from})"
+    note = f"recognised as a person ({len(trunk)}-segment trunk, legs of {len(chains[legs[0]])}, arms of {len(chains[arms[0]])} segments; left/right from {side_from})"
     return Naming("humanoid", tuple(names), tuple(joint_names), int(pelvis), legs_seg, side_from, note, role)
 
 
