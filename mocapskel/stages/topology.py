@@ -22,7 +22,7 @@ import numpy as np
 from ..artifacts import Segments, Topology
 from ..errors import DataError
 from ..parallel import n_threads, run_forked
-from ..solvers.jmv import balanced_alpha, distance_penalty, joint_cost, pair_cost
+from ..solvers.jmv import balanced_alpha, distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 
 VERSION = 10
@@ -286,16 +286,16 @@ def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: dict
             # Q is a mean over the points: the added point's term is counted, not its share of the mean (a
             # point the joint can sit on would otherwise lower the cost by dilution alone: a head moving with
             # the trunk "joined" the upper arm at the trunk's shoulder point, 7.1 against the trunk's 7.5)
-            n_real = members[a].size + members[b].size
             both = np.concatenate([ia, ib])
-            weight = np.broadcast_to(balanced_alpha(alpha, ia.size, ib.size), both.shape)
             added = np.flatnonzero(both >= M)
             if added.size:
                 # summed over the real markers only, the added points' variances kept (what they say of
-                # the joint) and their distance penalties not (the prior is about the markers)
-                extra = sum(joint_cost(c, pts[:, [both[k]]], alpha=float(weight[k])) -
-                            joint_cost(c, pts[:, [both[k]]], alpha=0.0) for k in added)
-                q = (q * both.size - extra) / n_real
+                # the joint) and their distance penalties (weight times mean distance) not: the prior is
+                # about the markers
+                weight = np.broadcast_to(balanced_alpha(alpha, ia.size, ib.size), both.shape)[added]
+                with np.errstate(invalid="ignore"):
+                    dist = np.nanmean(np.linalg.norm(pts[:, both[added]] - c[:, None, :], axis=2), axis=0)
+                q = (q * both.size - float(weight @ dist)) / (members[a].size + members[b].size)
             use = list(idx)
             use[a], use[b] = ia, ib
             q *= params.elsewhere_factor if _nearer_elsewhere(c, pts, use, a, b, params.nearer) else 1.0
