@@ -183,8 +183,8 @@ def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():
     """Realistic CMU marker set (knee, elbow and ankle markers on the flexion axes, 42-52 mm outside the
     joint centres, skin motion driven by the joint angles), a kick: along the axis the markers hardly fix
     a centre and the fit leaves it near the marker; the knee, deepened, is nearer the truth (by 30 mm here,
-    38 mm on kick seed 1). Not every deepened joint gains: on realistic takes elbows lost 4-13 mm and
-    ankles anywhere from -20 to +67 mm, the walks' overall joint rms from -0.1 to -7 mm."""
+    38 mm on kick seed 1). Not every deepened joint gains: on realistic takes elbows came out 4-13 mm
+    farther, ankles from 20 mm nearer to 67 mm farther, and the walks' overall joint rms 0.1 to 7 mm worse."""
     from mocapskel.synth.presets import realistic
 
     take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))

@@ -207,8 +207,9 @@ def test_strict_fit_of_a_micrometre_take_exits_4_and_writes_nothing(tmp_path) ->
 
 
 def test_a_hip_slid_along_the_thigh_warns_of_asymmetric_limbs(human_fit) -> None:
-    """A hip slid 30 % of the thigh along it (the markers of a walk hardly fix it there; a generated gait take's
-    left thigh came out 557 mm against the right's 463) makes one thigh longer than the other: said, naming both."""
+    """A hip slid 30 % of the thigh along it (the markers of a walk hardly fix it there: a generated gait take's
+    left thigh came out 557 mm against the right's 463, though that lower-body tree is not taken for a person)
+    makes one thigh of this full-body person longer than the other: said, naming both."""
     from mocapskel.naming import recognise
 
     _, res = human_fit
