@@ -35,7 +35,7 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _seen, jmv_joint, joint_cost
+from .jmv import JointFit, _seen, jmv_joint, jmv_joint_long, joint_cost
 from .mtb import COLLINEAR_TOL, Basis, mtb_basis, mtb_joint
 
 __all__ = ["TreeJoints", "solve_tree"]
@@ -118,6 +118,7 @@ def solve_tree(
     combine: str = "weighted",
     tol: float = COLLINEAR_TOL,
     jmv_kwargs: dict[str, Any] | None = None,
+    max_frames: int | None = None,
 ) -> TreeJoints:
     """Solve every joint of a tree of marker groups (Hang's hybrid framework).
 
@@ -138,6 +139,10 @@ def solve_tree(
         Relative collinearity tolerance of the bases.
     jmv_kwargs : dict, optional
         Extra keyword arguments for :func:`jmv_joint` (``max_iter``, ``tol``).
+    max_frames : int, optional
+        JMV fits of longer takes on this many frames spread over the take, every frame then
+        placed from the fitted radii (:func:`~mocapskel.solvers.jmv.jmv_joint_long`, as the
+        joints stage fits its own JMV joints); None: every frame.
 
     Returns
     -------
@@ -305,7 +310,10 @@ def solve_tree(
         a, b = ed[e]
         pa, _ = points(a, e)
         pb, _ = points(b, e)
-        fit = jmv_joint(pa, pb, alpha=alpha, **jk)
+        if max_frames is None:
+            fit = jmv_joint(pa, pb, alpha=alpha, **jk)
+        else:
+            fit = jmv_joint_long(pa, pb, alpha=alpha, max_frames=max_frames, **jk)
         store(e, fit, "jmv", -1)
         record("jmv", int(a if cat[a] <= cat[b] else b), [e], "jmv")
         propagate()

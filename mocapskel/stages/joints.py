@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 12
+VERSION = 13
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -73,7 +73,8 @@ class Params:
     data fix even a near-hinge exactly)."""
     jmv_frames: int = 1200
     """JMV joints of longer takes are fitted on this many frames spread over the take,
-    every frame then placed from the fitted radii (``jmv_joint_long``)."""
+    every frame then placed from the fitted radii (``jmv_joint_long``); Hang's framework's JMV
+    joints likewise."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -138,7 +139,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
 
         def fit_job(e: int):
             if e < 0:
-                return solve_tree(groups, edges, alpha=alpha)
+                return solve_tree(groups, edges, alpha=alpha, max_frames=params.jmv_frames)
             return jmv_joint_long(groups[edges[e][0]], groups[edges[e][1]], alpha=alpha, max_frames=params.jmv_frames)
 
         fitted = dict(zip([-1] + todo, run_blocks(fit_job, [-1] + todo))) if todo else {}
@@ -197,7 +198,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 per_joint[e]["note"] = fit.reason
         done[:] = True
     if not done.all():  # the hybrid framework (MTB, propagation, JMV) for the rest
-        tree = solve_tree(groups, edges, alpha=alpha)
+        tree = solve_tree(groups, edges, alpha=alpha, max_frames=params.jmv_frames)
         for e in np.flatnonzero(~done):
             centres[:, e] = tree.centres[:, e]
             methods[e] = tree.method[e]
