@@ -18,6 +18,7 @@ from ..errors import DataError
 from ..io.bvh import depth_first_order, sanitize_names
 from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
+from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
@@ -621,12 +622,17 @@ def _symmetry_normal(points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray,
         norm = float(np.linalg.norm(c))
         if not norm > 0:
             continue
-        u = c / norm
-        refl = points - 2.0 * ((points - cen) @ u)[:, None] * u
-        m = float(np.linalg.norm(refl[:, None] - points[None], axis=2).min(1).max())
+        m = _mirror_miss(points, cen, c / norm)
         if m < miss:
-            best, miss = u, m
+            best, miss = c / norm, m
     return best, miss
+
+
+def _mirror_miss(points: np.ndarray, centre: np.ndarray, normal: np.ndarray) -> float:
+    """How far the worst of ``points`` (n, 3), reflected in the plane through ``centre`` normal to the
+    unit ``normal``, lands from the nearest of them (0 for a set symmetric about that plane)."""
+    refl = points - 2.0 * ((points - centre) @ normal)[:, None] * normal
+    return float(np.linalg.norm(refl[:, None] - points[None], axis=2).min(1).max())
 
 
 def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: float = MIRROR_MATCH) -> Skeleton:
@@ -641,8 +647,10 @@ def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: floa
     them back raised the rms by 8 % on a real jump whose hips came 90 mm nearer the reference, 9-14 %
     on generated walks, 24 % where a generated range-of-motion subject's fixed hips would have
     moved 18 mm; per squared step the two differ tenfold.)"""
+    if skel.pose_rot is None or skel.pose_frames is None:
+        return skel
     shifts = mirror_shifts(skel, match, loose_joints(skel))
-    if not shifts or skel.pose_rot is None or skel.pose_frames is None:
+    if not shifts:
         return skel
     parent = np.asarray(skel.parent)
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
@@ -680,8 +688,6 @@ def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: floa
 def _pose_ms(skel: Skeleton, origin: np.ndarray, local: np.ndarray, pts: np.ndarray) -> float:
     """Mean squared marker residual (mm^2) of a skeleton with rest offsets ``origin``, ``local`` on
     ``pts`` (F, M, 3), the refinement's frames: IK from the refinement's poses, with no prior."""
-    from ..solvers.ik import solve_ik
-
     res = solve_ik(skel.parent, origin, skel.marker_segment, local, pts, init_rot=skel.pose_rot,
                    init_root=skel.pose_root, prior_weight=0.0)
     r = res.residual[np.isfinite(res.residual)]
@@ -709,12 +715,11 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
     within ``match`` times the joints' distance of another: :func:`_symmetry_normal`) that lies
     across the line between the two joints (at most 60 degrees from its normal) with one limb's
     markers on either side, both joints get the same step along its normal, the one that puts
-    their midpoint in the plane. The distance between them, which
-    the markers fix, is kept. Another child of that parent whose own markers mirror onto themselves
-    in that plane (a trunk's midline markers on a pelvis) has its joint moved along the normal into
-    it. A parent whose markers are not symmetric (a thorax with a marker on one shoulder blade)
-    says nothing. The limbs' own markers are not compared: marker sets place
-    them asymmetrically on purpose (a thigh marker higher on one side).
+    their midpoint in the plane. The distance between them, which the markers fix, is kept. Another
+    child of that parent whose own markers mirror onto themselves in that plane (a trunk's midline
+    markers on a pelvis) has its joint moved along the normal into it. A parent whose markers are not
+    symmetric (a thorax with a marker on one shoulder blade) says nothing. The limbs' own markers are
+    not compared: marker sets place them asymmetrically on purpose (a thigh marker higher on one side).
 
     Only joints the markers may leave free are candidates: both of the pair in ``loose`` (child
     segments; None: any; see :func:`loose_joints`). Where the markers fix a joint (a range-of-motion
@@ -736,10 +741,10 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
         if len(kids) < 2 or len(mk) < 2:
             continue
         cen = mk.mean(0)
+        shape = {c: _subtree_shape(parent, count, c) for c in kids}
         for i, a in enumerate(kids):
             for b in kids[i + 1:]:
-                shape = _subtree_shape(parent, count, a)
-                if a in out or b in out or shape != _subtree_shape(parent, count, b) or not shape[1]:
+                if a in out or b in out or shape[a] != shape[b] or not shape[a][1]:
                     continue  # not two like limbs (each a chain of two segments or more)
                 if loose is not None and not {a, b} <= loose:
                     continue  # the markers fix one of them
@@ -761,8 +766,7 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
                     own = pos[seg == c]
                     if c in out or not len(own) or loose is not None and c not in loose:
                         continue
-                    refl = own - 2.0 * ((own - cen) @ n)[:, None] * n
-                    if float(np.linalg.norm(refl[:, None] - own[None], axis=2).min(1).max()) <= match * sep:
+                    if _mirror_miss(own, cen, n) <= match * sep:
                         out[c] = float((cen - origin[c]) @ n) * n
     return out
 
