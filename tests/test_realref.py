@@ -63,7 +63,7 @@ def test_robot_arm_links_between_parallel_axes_within_five_percent(tmp_path: Pat
 
 def test_cmu_full_body_take_joints_and_bones(tmp_path: Path) -> None:
     """The 41-marker CMU set on a two-footed jump: at least 13 of the 20 reference joints, joints within
-    56 mm rms (55.2 now), both hips within 40 mm (31 and 38 now). The legs move together, so the
+    56 mm rms (55.1 now), both hips within 40 mm (31 and 38 now). The legs move together, so the
     markers fix neither hip along the line between them: the fit slid both 90-100 mm to one side
     (the left hip unmatched, the right 95 mm off, 12 joints at 64.8 mm) until like limbs were put
     back into their parent's plane of symmetry. Bones within 39 mm on average over the pairs scored

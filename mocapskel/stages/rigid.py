@@ -606,8 +606,8 @@ MIRROR_MATCH = 0.25
 
 #: A step is taken when it raises the mean squared marker residual (poses solved again) by at most
 #: this fraction of its own square: the markers hardly see it. Measured: hips the markers fix,
-#: 0.0045-0.0099 (generated range-of-motion subjects, three and two markers a segment); hips that
-#: slid, 0.00026-0.00054 (a real jump, generated walks); the bar sits a factor 2-4 from each.
+#: 0.0044-0.0094 (generated range-of-motion subjects, three and two markers a segment); hips that
+#: slid, 0.00013-0.00054 (a real jump, generated walks and a kick); the bar sits a factor 2-4 from each.
 MIRROR_SEEN = 0.002
 
 
