@@ -179,6 +179,25 @@ def test_refinement_holds_a_joint_along_the_axis_it_is_told(exact_two_marker):
     assert stiff.rms[1] > soft.rms[1] > free.rms[1]  # the rms reported is the markers' alone, and holding costs some
 
 
+def test_a_hinge_is_found_through_the_twist_of_a_limb_its_markers_hardly_fix():
+    """A knee flexing 0-70 degrees about x, the shank (bone along z) also twisting +-30 degrees about its own
+    long axis at random, as a shank of two markers along its bone does in a fit (a real jump's right knee:
+    spread about the second axis 0.77 of the first, no hinge). With the twist about the child's bone line
+    left out, the flexion axis is found; with it, no hinge is; a joint that turns about two axes across the
+    bone (a ball joint) is still none."""
+    rng = np.random.default_rng(4)
+    n = 300
+    flex = np.radians(rng.uniform(0, 70, n))
+    twist = np.radians(rng.uniform(-30, 30, n))
+    bone = np.array([0.0, 0.0, 1.0])
+    knee = Rotation.from_rotvec(flex[:, None] * [1.0, 0, 0]) * Rotation.from_rotvec(twist[:, None] * bone)
+    assert rigid._hinge_direction(knee.as_matrix(), 0.6) is None
+    ax = rigid._hinge_direction(knee.as_matrix(), 0.6, bone)
+    assert ax is not None and abs(ax[0]) > 0.99, ax
+    ball = Rotation.from_rotvec(np.stack([flex, np.radians(rng.uniform(-40, 40, n)), twist], 1))
+    assert rigid._hinge_direction(ball.as_matrix(), 0.6, bone) is None
+
+
 def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():
     """Realistic CMU marker set (knee, elbow and ankle markers on the flexion axes, 42-52 mm outside the
     joint centres, skin motion driven by the joint angles), a kick: along the axis the markers hardly fix
