@@ -551,8 +551,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     axis at the level of that marker; both limbs must give one and agree within a factor of 2 (a
     leaf, such as a foot or a forearm that carries the hand's markers, has no bone line: ankles
     deepened by the shank's half-width alone came out from 20 mm nearer to 50 mm farther from the
-    truth on generated takes). Two markers over the axis on either side (a wrist bar) put it between
-    them. Each segment keeps its markers where they were; the move is along the axis the joint turns
+    truth on generated takes). Two markers over the axis on either side (a lateral and a medial knee
+    marker) put it between them. Each segment keeps its markers where they were; the move is along the axis the joint turns
     about, so the poses still fit.
     """
     R = skel.pose_rot
@@ -565,6 +565,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     moved = {}
     for c in np.flatnonzero(skel.parent >= 0):
         p = int(skel.parent[c])
+        if skel.parent[p] < 0 or not (skel.parent == c).any():
+            continue  # the root or a leaf on one side: one limb to measure a half-width on
         rel = np.swapaxes(R[:, p], 1, 2) @ R[:, c]
         rel = rel[np.isfinite(rel).all((1, 2))]
         if len(rel) < 10:
