@@ -249,6 +249,39 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it():
     assert err[0][seg] < 35.0, (seg, err[0][seg], err[1][seg])
 
 
+def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them():
+    """A generated kick's knee, as the fit leaves it (near its lateral marker), given a medial marker on
+    the thigh, on the axis 1.4 half-widths inward of the lateral one: the knee goes to the midpoint of
+    the two, not one half-width inside the lateral marker, with the half-widths measured from bone
+    lines through that midpoint (through the medial marker's level the two limbs disagreed and the
+    knee was not moved at all)."""
+    from mocapskel.synth.presets import realistic
+
+    take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
+    joints = pipeline.run_until(take.markers, "joints").artifact
+    flat = rigid.run(joints, rigid.Params(joint_depth=False))
+    deep = rigid.deepen_joints(flat, rigid.Params().hinge_ratio)
+    (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]
+    c = flat.names.index(name)
+    p = int(flat.parent[c])
+    u = deep.origin[c] - flat.origin[c]
+    half = float(np.linalg.norm(u))
+    u /= half
+    pos = flat.origin[np.maximum(flat.marker_segment, 0)] + flat.marker_local
+    mine = np.flatnonzero(np.isin(flat.marker_segment, [p, c]))
+    rel = pos[mine] - flat.origin[c]
+    lateral = int(mine[np.argmin(np.linalg.norm(rel - np.outer(rel @ u, u), axis=1))])  # the marker over the axis
+    medial = pos[lateral] + 1.4 * half * u
+    both = replace(flat, marker_segment=np.append(flat.marker_segment, p),
+                   marker_local=np.vstack([flat.marker_local, medial - flat.origin[p]]))
+    got = rigid.deepen_joints(both, rigid.Params().hinge_ratio)
+    assert name in got.info.get("deepened", {}), got.info.get("deepened")
+    mid = 0.5 * (pos[lateral] + medial)
+    want = flat.origin[c] + float((mid - flat.origin[c]) @ u) * u
+    assert np.linalg.norm(got.origin[c] - want) < 3.0, (got.origin[c], want)
+    assert np.linalg.norm(got.origin[c] - deep.origin[c]) > 0.2 * half  # not where one marker puts it
+
+
 def test_a_walks_hips_are_put_back_into_the_pelvis_plane_of_symmetry():
     """Realistic CMU marker set, a walk: both hips turn about one axis along the line between them, which
     the markers do not fix; the refinement slid the left hip 100 mm along it. Moved together into the

@@ -535,6 +535,25 @@ def _limb_radius(skel: Skeleton, s: int, pos: np.ndarray, skip: set) -> float | 
 LIMB_WIDTH = 0.2
 
 
+def _half_width(skel: Skeleton, origin: np.ndarray, c: int, point: np.ndarray, pos: np.ndarray,
+                skip: set) -> tuple[float, float] | None:
+    """(half-width, length) of the limbs on either side of segment ``c``'s joint put at ``point``
+    (``origin`` the skeleton's rest origins otherwise): the mean of :func:`_limb_radius` of the parent
+    and of ``c`` (markers ``skip`` left out), and the shorter of their bone lengths. None when one of
+    them gives none, the two disagree by more than a factor of 2, or the half-width is more than
+    ``LIMB_WIDTH`` of the length (no limb has it)."""
+    lv = origin.copy()
+    lv[c] = point
+    at = replace(skel, origin=lv)
+    p = int(skel.parent[c])
+    radii = [r for s_ in (p, c) if (r := _limb_radius(at, s_, pos, skip)) is not None]
+    if len(radii) < 2 or max(radii) > 2.0 * min(radii):
+        return None
+    r = float(np.mean(radii))
+    length = min(line[2] for s_ in (p, c) if (line := _bone_line(at, s_)) is not None)
+    return None if r > LIMB_WIDTH * length else (r, length)
+
+
 def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     """Hinges between two limbs with a marker over their axis get their centre one limb half-width
     inside that marker.
@@ -551,8 +570,10 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     markers from their bone lines, drawn through the axis at the level of that marker; both limbs
     must give one and agree within a factor of 2 (a leaf, such as a foot or a forearm that carries
     the hand's markers, has no bone line: ankles deepened by the shank's half-width alone came out
-    from 25 mm nearer to 51 mm farther from the truth on generated kicks and walks). Two markers over
-    the axis on either side (a lateral and a medial knee marker) put it between them. Each segment
+    from 25 mm nearer to 51 mm farther from the truth on generated kicks and walks). A second marker
+    on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
+    along it from the first (a medial and a lateral knee marker), puts it between the two, wherever
+    the fit left it. Each segment
     keeps its markers where they were; the move is along the axis the joint turns about, so the
     poses still fit.
     """
@@ -593,23 +614,32 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
             level[c] = J + t[over[0]] * ax
         if ax is None:
             continue
-        at = replace(skel, origin=level)
-        radii = [r for s_ in (p, int(c)) if (r := _limb_radius(at, s_, pos, set(over[:1]))) is not None]
-        if len(radii) < 2 or max(radii) > 2.0 * min(radii):
-            continue  # not a limb on both sides, or two limbs that disagree: no half-width to trust
-        r = float(np.mean(radii))
-        length = min(line[2] for s_ in (p, int(c)) if (line := _bone_line(at, s_)) is not None)
-        if r > LIMB_WIDTH * length:
-            continue  # a half-width no limb has
-        # over the joint: on the axis, and along it within a limb's reach (where along it the fit put
-        # the centre, the markers hardly said)
-        on = [m for m in over if off[m] <= r and abs(t[m]) <= max(1.5 * r, 0.25 * length)]
-        if not on:
-            continue
-        two = [m for m in on if np.sign(t[m]) != np.sign(t[on[0]])]
-        if two:
-            shift = 0.5 * (t[on[0]] + t[two[0]])  # between a marker on either side
+
+        # a second marker on the axis (nearer it than a quarter of their distance apart) a joint's width
+        # from the first (one to three half-widths, measured at either marker's level): a medial and
+        # a lateral knee marker. The centre goes between them, wherever the fit left it along the axis
+        m0, pair = over[0], None
+        for m1 in over[1:]:
+            gap = abs(t[m1] - t[m0])
+            if max(off[m0], off[m1]) > 0.25 * gap:
+                continue
+            got = (_half_width(skel, origin, c, J + t[m0] * ax, pos, {m0, m1})
+                   or _half_width(skel, origin, c, J + t[m1] * ax, pos, {m0, m1}))
+            if got is not None and got[0] <= gap <= 3.0 * got[0]:
+                pair = m1
+                break
+        if pair is not None:
+            shift = 0.5 * (t[m0] + t[pair])
         else:
+            got = _half_width(skel, origin, c, J + t[m0] * ax, pos, {m0})
+            if got is None:
+                continue
+            r, length = got
+            # over the joint: on the axis, and along it within a limb's reach (where along it the fit
+            # put the centre, the markers hardly said)
+            on = [m for m in over if off[m] <= r and abs(t[m]) <= max(1.5 * r, 0.25 * length)]
+            if not on:
+                continue
             m = on[0]
             inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
             shift = t[m] + inward * r
