@@ -198,19 +198,25 @@ def test_a_hinge_is_found_through_the_twist_of_a_limb_its_markers_hardly_fix():
     assert rigid._hinge_direction(ball.as_matrix(), 0.6, bone) is None
 
 
-def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():
+@pytest.fixture(scope="module")
+def kick():
+    """A realistic CMU-set kick (seed 2), its joints stage and its rigid skeleton without the deepening."""
+    from mocapskel.synth.presets import realistic
+
+    take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
+    joints = pipeline.run_until(take.markers, "joints").artifact
+    return take, joints, rigid.run(joints, rigid.Params(joint_depth=False))
+
+
+def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it(kick):
     """Realistic CMU marker set (knee, elbow and ankle markers on the flexion axes, 42-52 mm outside the
     joint centres, skin motion driven by the joint angles), a kick: along the axis the markers hardly fix
     a centre and the fit leaves it near the marker; the knee, deepened, is nearer the truth (by 30 mm here).
     Only joints between two limbs are deepened: where the child is a leaf (a foot, a forearm carrying the
     hand) one limb gives the half-width, and so deepened, realistic elbows came out 4-13 mm farther and
     ankles from 20 mm nearer to 67 mm farther from the truth."""
-    from mocapskel.synth.presets import realistic
-
-    take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
-    joints = pipeline.run_until(take.markers, "joints").artifact
+    take, joints, flat = kick
     deep = rigid.run(joints)
-    flat = rigid.run(joints, rigid.Params(joint_depth=False))
     moved = deep.info.get("deepened", {})
     assert moved and all(0 < v < 100 for v in moved.values())  # knees, elbows, ankles: tens of mm
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (deep, flat)]
@@ -221,18 +227,14 @@ def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it():
     assert np.allclose(rest(deep), rest(flat), atol=1e-9)
 
 
-def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it():
+def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kick):
     """A knee's position along its flexion axis is what the markers fix least: on a real jump the fit slid
     one 76 mm past the knee marker, out of the leg, where the limbs' half-widths, measured from bone
     lines through that point, came out 38 and 8 mm and the knee was left there. Here a generated kick's
     knee is slid 80 mm outward along its axis (its markers kept where they were, so the poses still
     fit): measured from the axis at the marker's level, the half-widths are those of the unslid fit, and
     the knee lands where the unslid one does, one half-width inside its marker and near the truth."""
-    from mocapskel.synth.presets import realistic
-
-    take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
-    joints = pipeline.run_until(take.markers, "joints").artifact
-    flat = rigid.run(joints, rigid.Params(joint_depth=False))
+    take, _, flat = kick
     deep = rigid.deepen_joints(flat, rigid.Params().hinge_ratio)
     (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]  # a joint between two limbs
     c = flat.names.index(name)
@@ -249,17 +251,13 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it():
     assert err[0][seg] < 35.0, (seg, err[0][seg], err[1][seg])
 
 
-def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them():
+def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     """A generated kick's knee, as the fit leaves it (near its lateral marker), given a medial marker on
     the thigh, on the axis 1.4 half-widths inward of the lateral one: the knee goes to the midpoint of
-    the two, not one half-width inside the lateral marker, with the half-widths measured from bone
-    lines through that midpoint (through the medial marker's level the two limbs disagreed and the
-    knee was not moved at all)."""
-    from mocapskel.synth.presets import realistic
-
-    take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
-    joints = pipeline.run_until(take.markers, "joints").artifact
-    flat = rigid.run(joints, rigid.Params(joint_depth=False))
+    the two, not one half-width inside the lateral marker. The half-widths that judge the pair are
+    measured at either marker's level (taken only at the level of the marker nearest the axis, here
+    the medial one, the two limbs disagreed and the knee was not moved at all)."""
+    _, _, flat = kick
     deep = rigid.deepen_joints(flat, rigid.Params().hinge_ratio)
     (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]
     c = flat.names.index(name)

@@ -573,9 +573,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     from 25 mm nearer to 51 mm farther from the truth on generated kicks and walks). A second marker
     on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
     along it from the first (a medial and a lateral knee marker), puts it between the two, wherever
-    the fit left it. Each segment
-    keeps its markers where they were; the move is along the axis the joint turns about, so the
-    poses still fit.
+    the fit left it. Each segment keeps its markers where they were; the move is along the axis the
+    joint turns about, so the poses still fit.
     """
     R = skel.pose_rot
     pos = _rest_markers(skel)
