@@ -6,8 +6,9 @@ at infinity); the costs are then made again with each one- or two-marker
 segment given its cheapest joint as one more point (it fixes the segment's
 turn about its marker axis, which a joint with it otherwise leaves free; the
 point's variance counts, not its share of the mean cost); the skeleton's tree
-is the minimum spanning tree of those costs (Kruskal; equal costs are taken in
-pair order). The root is the tree's centre, like a pelvis.
+is the minimum spanning tree of those costs, each less the part its markers'
+own scatter in their segments gives by itself (:func:`own_floor`; Kruskal, equal
+costs taken in pair order). The root is the tree's centre, like a pelvis.
 
 Only the subsample and the per-frame visibility of the segments depend on the
 length of the take; both are one pass over the visibility of the markers.
@@ -24,12 +25,15 @@ from ..errors import DataError
 from ..parallel import n_threads, run_forked
 from ..solvers.jmv import balanced_alpha, distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
+from ..solvers.partition import rigid_rms
 
-VERSION = 10
+VERSION = 11
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
 PAIR_FRAMES = 40
+#: A segment's own floor (:func:`own_floor`) needs all its markers seen together on this many frames.
+OWN_FLOOR_FRAMES = 5
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,9 @@ class Params:
     elbow is nearer)."""
     elsewhere_factor: float = 10.0
     """Cost factor of such a pair (kept finite: the tree may still need it)."""
+    own_floor: bool = True
+    """Choose the tree on each pair's cost less the part its markers' own scatter gives (see
+    :func:`own_floor`); the reported costs are Kirk's."""
     augment: bool = True
     """Cost the pairs again with each one- or two-marker segment given its cheapest joint as a
     third point (see :func:`_augmented_costs`)."""
@@ -230,7 +237,14 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     first = C
     if params.augment:
         C = _augmented_costs(C, sub, members, on_sub, alpha, params)
-    tree = minimum_spanning_tree(S, C)
+    # the tree is chosen on each pair's cost less what its markers' own scatter in their segments
+    # gives by itself: a segment that is not quite rigid (a trunk whose lumbar joint the take
+    # hardly moves) otherwise costs more with every partner, and two rigid limbs that swing about
+    # one axis (the upper arms in a walk) "join" more cheaply than either joins it
+    floor = own_floor(sub, members) if params.own_floor else np.zeros(S)
+    n = np.array([m.size for m in members], dtype=float)
+    E = (n[:, None] * floor[:, None] + n[None, :] * floor[None, :]) / np.maximum(n[:, None] + n[None, :], 1.0)
+    tree = minimum_spanning_tree(S, C - E)
     if tree is None:
         raise DataError("some segments are never seen together with the others — cannot connect them", segments.markers.source or None)
     # the tree's edges in the order of the first costs (as Kruskal took them before the costs were made
@@ -239,8 +253,34 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     root = tree_centre(S, tree, {s: int((segments.group == s).sum()) for s in range(S)})
     edges = np.array(_bfs(_neighbours(S, tree), root)[0], dtype=int).reshape(-1, 2)
     cost = np.array([C[a, b] for a, b in edges])
-    info = {"version": VERSION, "frames_used": int(frames.size), "alpha": alpha}
+    info = {"version": VERSION, "frames_used": int(frames.size), "alpha": alpha,
+            "own_floor_mm2": [round(float(f), 3) for f in floor]}
     return Topology(segments=segments, edges=edges, cost=cost, pair_cost=C, root=int(root), info=info)
+
+
+def own_floor(sub: np.ndarray, members: list) -> np.ndarray:
+    """(S,) each segment's floor of Kirk's joint cost: what its markers' scatter about their places in
+    the segment's own frame gives by itself, whatever the joint.
+
+    A marker that scatters by ``s`` (rms, in 3-D, equally in every direction) about its place varies
+    in distance to any point fixed in the segment by ``s^2 / 3`` (the radial part), so a segment's
+    floor is a third of its squared rigid-fit residual (generalised Procrustes on the frames of
+    ``sub`` (K, M, 3) where all its markers are seen). A segment of one or two markers has no frame
+    to measure it in: it gets the least floor of the others (the take's cleanest rigid body). A
+    pair's floor is the marker-weighted mean of its two segments' (Kirk's cost is a mean over the
+    markers of both).
+    """
+    S = len(members)
+    floor = np.full(S, np.nan)
+    for s in range(S):
+        if members[s].size < 3:
+            continue
+        P = sub[:, members[s]]
+        P = P[np.isfinite(P).all(axis=(1, 2))]
+        if len(P) >= OWN_FLOOR_FRAMES:
+            floor[s] = rigid_rms(P) ** 2 / 3.0
+    least = float(np.nanmin(floor)) if np.isfinite(floor).any() else 0.0
+    return np.where(np.isfinite(floor), floor, least)
 
 
 def _augmented_costs(C: np.ndarray, sub: np.ndarray, members: list, on_sub: dict, alpha: float,
