@@ -11,17 +11,10 @@ from mocapskel import pipeline
 from mocapskel.io.bvh import bvh_to_lab, forward_kinematics, read_bvh, write_bvh
 from mocapskel.naming import name_skeleton
 from mocapskel.stages import export
-from mocapskel.synth.human import LABEL_CODES, PARENT, SEGMENTS
+from mocapskel.synth.human import HUMANOID_NAMES, LABEL_CODES, PARENT, SEGMENTS
 from mocapskel.synth.presets import Recipe, make
 
-#: The humanoid name of each generated segment (a 2-segment trunk: Pelvis, Torso).
-EXPECTED = {
-    "Pelvis": "Hips", "Torso": "Spine", "Head": "Head",
-    "LUpperArm": "LeftArm", "LForearm": "LeftForeArm", "LHand": "LeftHand",
-    "RUpperArm": "RightArm", "RForearm": "RightForeArm", "RHand": "RightHand",
-    "LThigh": "LeftUpLeg", "LShank": "LeftLeg", "LFoot": "LeftFoot",
-    "RThigh": "RightUpLeg", "RShank": "RightLeg", "RFoot": "RightFoot",
-}  # fmt: skip
+EXPECTED = HUMANOID_NAMES
 CODE_TO_SEGMENT = dict(zip(LABEL_CODES, SEGMENTS))
 CASES = [("rom", 0), ("rom", 1), ("rom", 2), ("run", 0), ("walk", 0)]
 

@@ -22,7 +22,7 @@ from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 17
+VERSION = 18
 
 
 @dataclass(frozen=True)
@@ -176,9 +176,14 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             if "refined" in one[1].info:
                 a = one[1].info["refined"]["marker_rms_mm_after"]
                 b = two[1].info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                bad_one = len(implausible_joints(one[1], params.far, params.outside))
-                bad_two = np.inf if two is None else len(implausible_joints(two[1], params.far, params.outside))
-                if bad_one != bad_two:  # never a lower residual bought with a joint off its markers
+                # never a lower residual bought with a joint off its markers: the fewer implausible joints
+                # after the trial, then the fewer like limbs' joints slid together at the start (both
+                # trials slid a real jump's hips together, from 154 and 79 mm apart: the refinement
+                # that holds them holds them where the start had them)
+                bad_one = [len(implausible_joints(one[1], params.far, params.outside)), len(collapsed_pairs(one[0]))]
+                bad_two = ([np.inf, np.inf] if two is None else
+                           [len(implausible_joints(two[1], params.far, params.outside)), len(collapsed_pairs(two[0]))])
+                if bad_one != bad_two:
                     win = 1 if bad_one > bad_two else 0
                 else:
                     win = 1 if b is not None and b < a else 0
@@ -352,6 +357,44 @@ def off_the_body(skel: Skeleton, far: float, outside: float) -> list[int]:
     return sorted(set(far_joints(skel, far)) | set(outside_joints(skel, outside)))
 
 
+#: Like limbs' first joints nearer each other than this fraction of the distance between the two limbs'
+#: marker centroids at rest have slid together (two hips at one point).
+COLLAPSED = 0.5
+
+
+def collapsed_pairs(skel: Skeleton, frac: float = COLLAPSED) -> list[int]:
+    """Like limbs (two children of one segment whose subtrees have the same shape, segment for segment
+    as many markers, each of two segments or more: two legs, two arms) whose joints sit nearer each
+    other than ``frac`` times the distance between the two limbs' marker centroids at rest. Legs that
+    move alike (a two-footed jump) do not fix their hips along the line between them, and a fit can
+    slide both to the middle of the pelvis: no body has two hips at one point."""
+    pos = _rest_markers(skel)
+    seg = np.where(np.isfinite(pos).all(1), skel.marker_segment, -1)
+    parent = np.asarray(skel.parent)
+    count = np.bincount(seg[seg >= 0], minlength=len(parent))
+
+    def limb(c: int) -> np.ndarray:  # the segments of c's subtree
+        out, todo = [], [c]
+        while todo:
+            s_ = todo.pop()
+            out.append(s_)
+            todo += [int(k) for k in np.flatnonzero(parent == s_)]
+        return np.array(out)
+
+    out: set[int] = set()
+    for p in range(len(parent)):
+        kids = [int(k) for k in np.flatnonzero(parent == p)]
+        shape = {c: _subtree_shape(parent, count, c) for c in kids}
+        for i, a in enumerate(kids):
+            for b in kids[i + 1:]:
+                if shape[a] != shape[b] or not shape[a][1] or count[a] == 0:
+                    continue
+                ca, cb = (pos[np.isin(seg, limb(c))].mean(0) for c in (a, b))
+                if float(np.linalg.norm(skel.origin[a] - skel.origin[b])) < frac * float(np.linalg.norm(ca - cb)):
+                    out |= {a, b}
+    return sorted(out)
+
+
 def implausible_joints(skel: Skeleton, far: float, outside: float) -> list[int]:
     """Segments whose joint to their parent no body has: :func:`off_the_body`, or a bone (the joint's
     distance from the parent's joint) longer than the subject's marker extent at rest (the
@@ -403,7 +446,7 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
     if "refined" not in out.info:
         return out
     far = off_the_body(out, params.far, params.outside)
-    bad = sorted(set(far) | set(slid_joints(skel, out, params.slide)))
+    bad = sorted(set(far) | set(slid_joints(skel, out, params.slide)) | set(collapsed_pairs(out)))
     if bad and params.joint_prior > 0:
         # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
         # joints where the joints stage put them

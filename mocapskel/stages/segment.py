@@ -9,9 +9,10 @@ within-group spread is kept (a RANSAC-like guard against sporadic jumps). The
 number of groups is given or taken from the eigen-gap.
 
 Without a given number, the groups are the rigid groups at the take's own tolerance
-(average linkage), lone markers then given a place; a group that keeps its distances
-but does not move as one body (its rigid-fit residual above the tolerance) is then
-split in two (:func:`split_nonrigid`).
+(average linkage), lone markers then given a place, pairs of markers that are one body's
+skin joined to it (:func:`absorb_pairs`); a group that keeps its distances but does not
+move as one body (its rigid-fit residual above the tolerance) is then split in two
+(:func:`split_nonrigid`).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from ..errors import DataError
 from ..solvers.partition import best_split, rigid_rms, scatter_in_frame
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 6
+VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,9 @@ class Params:
     rigid marker plates on one bone) does not locate a joint between them."""
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
+    absorb_pairs: bool = True
+    """A group of two markers that moves against a group of three or more by too little to locate a
+    joint joins it (see :func:`absorb_pairs`)."""
     split_nonrigid: bool = True
     """Split a group in two where its markers keep their distances but do not move as one body
     (see :func:`split_nonrigid`)."""
@@ -455,6 +459,78 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
     return by_first_marker(lab), moves
 
 
+def absorb_pairs(points: np.ndarray, labels: np.ndarray, reveal: float, mean_d: np.ndarray,
+                 reach: float, tau: float = 0.0) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """Each group of two markers that moves against some group of three or more by too little for
+    the joint between them to be located joins that group ("absorbed with its pair"); before, two
+    pairs that cross each other and move as one rigid body (within ``tau``) are joined.
+
+    The bar is the one a lone marker must pass (:func:`absorb_lone_markers` with ``reveal``): each
+    of the two markers' rms scatter about its mean place in the other group's moving frame (that
+    group's markers fitted as a rigid body on the frames where all are seen) at most ``reveal``.
+    Two markers of one body that skin motion moves against the rest of it (a shoulder marker and a
+    clavicle marker on a thorax, the two acromion markers of a subject holding a guard) otherwise
+    make a segment whose joint no data locate, and the tree hangs the arms, or the head, on it.
+    Groups of three or more are candidates only when one of their markers is within ``reach``
+    (``mean_d``: mean marker distances) of one of the pair. The pair with the least scatter goes
+    first, then the others again, until none passes. points : (K, M, 3) the sampled frames.
+    Returns the labels numbered by first marker and the moves.
+    """
+    lab = np.array(labels, dtype=int)
+    near = np.nan_to_num(mean_d, nan=np.inf) <= reach
+    moves: list[tuple[int, str]] = []
+    # two pairs that cross each other (the distance between their middles less than either's own
+    # span) and move as one rigid body (rigid-fit residual within ``tau``) are one body the grouping
+    # split, a pelvis's four markers paired diagonally: joined first (two thighs that move together
+    # in a jump lie side by side, their middles farther apart than their spans)
+    sizes = np.bincount(lab)
+    pairs = [np.flatnonzero(lab == g) for g in np.flatnonzero(sizes == 2)]
+    joined: set[int] = set()
+    for i in range(len(pairs)):
+        for j in range(i + 1, len(pairs)):
+            if i in joined or j in joined:
+                continue
+            Q = points[:, np.concatenate([pairs[i], pairs[j]])]
+            Q = Q[np.isfinite(Q).all(axis=(1, 2))]
+            if len(Q) < SPLIT_MIN_FRAMES:
+                continue
+            gap = float(np.median(np.linalg.norm(Q[:, :2].mean(1) - Q[:, 2:].mean(1), axis=1)))
+            span = min(float(np.median(np.linalg.norm(Q[:, 0] - Q[:, 1], axis=1))),
+                       float(np.median(np.linalg.norm(Q[:, 2] - Q[:, 3], axis=1))))
+            if gap < span and rigid_rms(Q) <= tau:
+                lab[pairs[j]] = lab[pairs[i][0]]
+                moves += [(int(m), "joined a crossing pair") for m in pairs[j]]
+                joined |= {i, j}
+    _, lab = np.unique(lab, return_inverse=True)
+    while True:
+        sizes = np.bincount(lab)
+        best = None
+        for g in np.flatnonzero(sizes == 2):
+            pair = np.flatnonzero(lab == g)
+            for h in np.flatnonzero(sizes >= 3):
+                mem = np.flatnonzero(lab == h)
+                if not near[np.ix_(pair, mem)].any():
+                    continue
+                Q = points[:, np.concatenate([mem, pair])]
+                Q = Q[np.isfinite(Q).all(axis=(1, 2))]
+                if len(Q) < SPLIT_MIN_FRAMES:
+                    continue
+                # the pair straddles the group (its middle nearer the group's centroid than its two
+                # markers are apart): a part of that body, not a limb beside or below it
+                gap = float(np.median(np.linalg.norm(Q[:, -2:].mean(1) - Q[:, :-2].mean(1), axis=1)))
+                if not gap < float(np.median(np.linalg.norm(Q[:, -1] - Q[:, -2], axis=1))):
+                    continue
+                worst = float(scatter_in_frame(Q, np.arange(mem.size))[mem.size:].max())
+                if worst <= reveal and (best is None or worst < best[0]):
+                    best = (worst, int(g), int(h), pair)
+        if best is None:
+            return by_first_marker(lab), moves
+        _, g, h, pair = best
+        lab[pair] = h
+        moves += [(int(m), "absorbed with its pair") for m in pair]
+        _, lab = np.unique(lab, return_inverse=True)
+
+
 def choose_sigma(std: np.ndarray, sigma: float | None, k: int | None) -> tuple[float, int, np.ndarray]:
     """Affinity width, number of groups (from the eigen-gap) and the eigenvalues.
 
@@ -566,6 +642,9 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             reveal = float(np.sqrt(level * np.median(ext)))
             lab, more = absorb_lone_markers(pooled, mean_d, lab, reveal, 2.0 * reach, nearest=True)
             moves += more
+            if params.absorb_pairs:
+                lab, more = absorb_pairs(markers.points[samplings[0]][:, iu], lab, reveal, mean_d, 2.0 * reach, tau)
+                moves += more
             if params.split_nonrigid:
                 lab, splits = split_nonrigid(markers.points[samplings[0]][:, iu], pooled, lab, tau, reveal,
                                              np.random.default_rng(params.seed))

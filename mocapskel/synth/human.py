@@ -65,6 +65,15 @@ SEGMENTS: tuple[str, ...] = (
     "LUpperArm", "LForearm", "LHand", "RUpperArm", "RForearm", "RHand",
     "LThigh", "LShank", "LFoot", "RThigh", "RShank", "RFoot",
 )  # fmt: skip
+#: The humanoid name (``--names humanoid``) of each segment, its trunk of two: the truth the naming
+#: tests and benchmarks compare with.
+HUMANOID_NAMES: dict[str, str] = {
+    "Pelvis": "Hips", "Torso": "Spine", "Head": "Head",
+    "LUpperArm": "LeftArm", "LForearm": "LeftForeArm", "LHand": "LeftHand",
+    "RUpperArm": "RightArm", "RForearm": "RightForeArm", "RHand": "RightHand",
+    "LThigh": "LeftUpLeg", "LShank": "LeftLeg", "LFoot": "LeftFoot",
+    "RThigh": "RightUpLeg", "RShank": "RightLeg", "RFoot": "RightFoot",
+}  # fmt: skip
 #: (S,) parent segment of each segment, -1 for the root.
 PARENT = np.array([-1, 0, 1, 1, 3, 4, 1, 6, 7, 0, 9, 10, 0, 12, 13])
 #: Joint ``e`` connects segment ``e + 1`` to its parent.
