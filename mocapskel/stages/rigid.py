@@ -377,21 +377,14 @@ def collapsed_pairs(skel: Skeleton, frac: float = COLLAPSED) -> list[int]:
     other than ``frac`` times the distance between the two limbs' first segments' marker centroids at
     rest. Legs that move alike (a two-footed jump) do not fix their hips along the line between them,
     and a fit can slide both to the middle of the pelvis: no body has two hips at one point."""
-    pos = _rest_markers(skel)
-    seg = np.where(np.isfinite(pos).all(1), skel.marker_segment, -1)
-    parent = np.asarray(skel.parent)
-    count = np.bincount(seg[seg >= 0], minlength=len(parent))
+    pos, seg, count = _rest_groups(skel)
     out: set[int] = set()
-    for p in range(len(parent)):
-        kids = [int(k) for k in np.flatnonzero(parent == p)]
-        shape = {c: _subtree_shape(parent, count, c) for c in kids}
-        for i, a in enumerate(kids):
-            for b in kids[i + 1:]:
-                if shape[a] != shape[b] or not shape[a][1] or count[a] == 0:
-                    continue
-                ca, cb = pos[seg == a].mean(0), pos[seg == b].mean(0)
-                if float(np.linalg.norm(skel.origin[a] - skel.origin[b])) < frac * float(np.linalg.norm(ca - cb)):
-                    out |= {a, b}
+    for _, a, b in _like_limb_pairs(skel.parent, count):
+        if count[a] == 0:
+            continue
+        ca, cb = pos[seg == a].mean(0), pos[seg == b].mean(0)
+        if float(np.linalg.norm(skel.origin[a] - skel.origin[b])) < frac * float(np.linalg.norm(ca - cb)):
+            out |= {a, b}
     return sorted(out)
 
 
@@ -697,6 +690,26 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local, info=info)
 
 
+def _rest_groups(skel: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The markers at rest (M, 3), each one's segment (-1 where unplaced) and each segment's count."""
+    pos = _rest_markers(skel)
+    seg = np.where(np.isfinite(pos).all(1), skel.marker_segment, -1)
+    return pos, seg, np.bincount(seg[seg >= 0], minlength=len(skel.parent))
+
+
+def _like_limb_pairs(parent: np.ndarray, count: np.ndarray) -> list[tuple[int, int, int]]:
+    """(parent, a, b) for every two children of one segment that are like limbs: subtrees of the same
+    shape, segment for segment as many markers (``count``), each of two segments or more (two legs,
+    two arms; not a head and an arm). By parent, then in child order."""
+    parent = np.asarray(parent)
+    out = []
+    for p in range(len(parent)):
+        kids = [int(k) for k in np.flatnonzero(parent == p)]
+        shape = {c: _subtree_shape(parent, count, c) for c in kids}
+        out += [(p, a, b) for i, a in enumerate(kids) for b in kids[i + 1:] if shape[a] == shape[b] and shape[a][1]]
+    return out
+
+
 def _subtree_shape(parent: np.ndarray, count: np.ndarray, s: int) -> tuple:
     """A canonical form of the subtree below segment ``s``: its marker count and its children's
     forms, sorted."""
@@ -832,45 +845,37 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
 
     skel : anything with ``origin``, ``marker_local``, ``marker_segment`` and ``parent`` (rest pose).
     """
-    pos = _rest_markers(skel)
-    seg = np.where(np.isfinite(pos).all(1), skel.marker_segment, -1)
+    pos, seg, count = _rest_groups(skel)
     parent = np.asarray(skel.parent)
-    count = np.bincount(seg[seg >= 0], minlength=len(parent))
     origin = skel.origin
     out: dict[int, np.ndarray] = {}
-    for p in range(len(parent)):
-        kids = [int(k) for k in np.flatnonzero(parent == p)]
+    for p, a, b in _like_limb_pairs(parent, count):
         mk = pos[seg == p]
-        if len(kids) < 2 or len(mk) < 2:
+        if len(mk) < 2 or a in out or b in out:
+            continue
+        if loose is not None and not {a, b} <= loose:
+            continue  # the markers fix one of them
+        v = origin[b] - origin[a]
+        sep = float(np.linalg.norm(v))
+        if not sep > 0 or count[a] == 0:  # (like shapes: as many markers on b)
             continue
         cen = mk.mean(0)
-        shape = {c: _subtree_shape(parent, count, c) for c in kids}
-        for i, a in enumerate(kids):
-            for b in kids[i + 1:]:
-                if a in out or b in out or shape[a] != shape[b] or not shape[a][1]:
-                    continue  # not two like limbs (each a chain of two segments or more)
-                if loose is not None and not {a, b} <= loose:
-                    continue  # the markers fix one of them
-                v = origin[b] - origin[a]
-                sep = float(np.linalg.norm(v))
-                if not sep > 0 or count[a] == 0:  # (like shapes: as many markers on b)
-                    continue
-                n, miss = _symmetry_normal(mk, v / sep)
-                if miss > match * sep or abs(float(n @ v)) < 0.5 * sep:
-                    continue  # no plane of symmetry, or not one across the line between the two joints
-                sides = [float((pos[seg == c].mean(0) - cen) @ n) for c in (a, b)]
-                if not sides[0] * sides[1] < 0:
-                    continue  # not one limb on either side
-                d = float((cen - 0.5 * (origin[a] + origin[b])) @ n) * n
-                out[a], out[b] = d, d.copy()
-                # a child on the middle line (a trunk on the pelvis: its markers mirror onto themselves
-                # in the same plane) has its joint in the plane too
-                for c in kids:
-                    own = pos[seg == c]
-                    if c in out or not len(own) or loose is not None and c not in loose:
-                        continue
-                    if _mirror_miss(own, cen, n) <= match * sep:
-                        out[c] = float((cen - origin[c]) @ n) * n
+        n, miss = _symmetry_normal(mk, v / sep)
+        if miss > match * sep or abs(float(n @ v)) < 0.5 * sep:
+            continue  # no plane of symmetry, or not one across the line between the two joints
+        sides = [float((pos[seg == c].mean(0) - cen) @ n) for c in (a, b)]
+        if not sides[0] * sides[1] < 0:
+            continue  # not one limb on either side
+        d = float((cen - 0.5 * (origin[a] + origin[b])) @ n) * n
+        out[a], out[b] = d, d.copy()
+        # a child on the middle line (a trunk on the pelvis: its markers mirror onto themselves
+        # in the same plane) has its joint in the plane too
+        for c in (int(k) for k in np.flatnonzero(parent == p)):
+            own = pos[seg == c]
+            if c in out or not len(own) or loose is not None and c not in loose:
+                continue
+            if _mirror_miss(own, cen, n) <= match * sep:
+                out[c] = float((cen - origin[c]) @ n) * n
     return out
 
 

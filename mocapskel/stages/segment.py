@@ -73,8 +73,9 @@ class Params:
     min_seen: int = 8
     """A marker seen in fewer sampled frames than this is left out of the groups."""
     absorb_pairs: bool = True
-    """A group of two markers that moves against a group of three or more by too little to locate a
-    joint joins it (see :func:`absorb_pairs`)."""
+    """Two groups of two markers that cross each other and move as one rigid body are joined, and a
+    group of two that straddles a group of three or more and moves against it by too little to locate
+    a joint joins it (see :func:`absorb_pairs`)."""
     split_nonrigid: bool = True
     """Split a group in two where its markers keep their distances but do not move as one body
     (see :func:`split_nonrigid`)."""
@@ -402,9 +403,8 @@ def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau:
         idx = queue.pop(0)
         if idx.size < 6:
             continue
-        P = points[:, idx]
-        P = P[np.isfinite(P).all(axis=(1, 2))]
-        if len(P) < SPLIT_MIN_FRAMES:
+        P = _seen_together(points, idx)
+        if P is None:
             continue
         r = rigid_rms(P)
         if not r > tau:
@@ -459,8 +459,21 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
     return by_first_marker(lab), moves
 
 
+def _seen_together(points: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
+    """The markers ``idx`` of ``points`` (K, M, 3) on the frames where all are seen, (K', n, 3); None when
+    fewer than ``SPLIT_MIN_FRAMES`` are."""
+    P = points[:, idx]
+    P = P[np.isfinite(P).all(axis=(1, 2))]
+    return P if len(P) >= SPLIT_MIN_FRAMES else None
+
+
+def _median_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Median over frames of the distance between the point trajectories ``a`` and ``b`` (K, 3)."""
+    return float(np.median(np.linalg.norm(a - b, axis=1)))
+
+
 def absorb_pairs(points: np.ndarray, labels: np.ndarray, reveal: float, mean_d: np.ndarray,
-                 reach: float, tau: float = 0.0) -> tuple[np.ndarray, list[tuple[int, str]]]:
+                 reach: float, tau: float) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Each group of two markers that moves against some group of three or more by too little for
     the joint between them to be located joins that group ("absorbed with its pair"); before, two
     pairs that cross each other and move as one rigid body (within ``tau``) are joined.
@@ -490,14 +503,11 @@ def absorb_pairs(points: np.ndarray, labels: np.ndarray, reveal: float, mean_d: 
         for j in range(i + 1, len(pairs)):
             if i in joined or j in joined:
                 continue
-            Q = points[:, np.concatenate([pairs[i], pairs[j]])]
-            Q = Q[np.isfinite(Q).all(axis=(1, 2))]
-            if len(Q) < SPLIT_MIN_FRAMES:
+            Q = _seen_together(points, np.concatenate([pairs[i], pairs[j]]))
+            if Q is None:
                 continue
-            gap = float(np.median(np.linalg.norm(Q[:, :2].mean(1) - Q[:, 2:].mean(1), axis=1)))
-            span = min(float(np.median(np.linalg.norm(Q[:, 0] - Q[:, 1], axis=1))),
-                       float(np.median(np.linalg.norm(Q[:, 2] - Q[:, 3], axis=1))))
-            if gap < span and rigid_rms(Q) <= tau:
+            gap = _median_gap(Q[:, :2].mean(1), Q[:, 2:].mean(1))
+            if gap < min(_median_gap(Q[:, 0], Q[:, 1]), _median_gap(Q[:, 2], Q[:, 3])) and rigid_rms(Q) <= tau:
                 lab[pairs[j]] = lab[pairs[i][0]]
                 moves += [(int(m), "joined a crossing pair") for m in pairs[j]]
                 joined |= {i, j}
@@ -511,14 +521,12 @@ def absorb_pairs(points: np.ndarray, labels: np.ndarray, reveal: float, mean_d: 
                 mem = np.flatnonzero(lab == h)
                 if not near[np.ix_(pair, mem)].any():
                     continue
-                Q = points[:, np.concatenate([mem, pair])]
-                Q = Q[np.isfinite(Q).all(axis=(1, 2))]
-                if len(Q) < SPLIT_MIN_FRAMES:
+                Q = _seen_together(points, np.concatenate([mem, pair]))
+                if Q is None:
                     continue
                 # the pair straddles the group (its middle nearer the group's centroid than its two
                 # markers are apart): a part of that body, not a limb beside or below it
-                gap = float(np.median(np.linalg.norm(Q[:, -2:].mean(1) - Q[:, :-2].mean(1), axis=1)))
-                if not gap < float(np.median(np.linalg.norm(Q[:, -1] - Q[:, -2], axis=1))):
+                if not _median_gap(Q[:, -2:].mean(1), Q[:, :-2].mean(1)) < _median_gap(Q[:, -1], Q[:, -2]):
                     continue
                 worst = float(scatter_in_frame(Q, np.arange(mem.size))[mem.size:].max())
                 if worst <= reveal and (best is None or worst < best[0]):
