@@ -24,7 +24,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
-__all__ = ["n_threads", "run_blocks", "run_forked"]
+__all__ = ["Shares", "n_threads", "run_blocks", "run_forked"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -61,8 +61,8 @@ def run_blocks(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
 
 
 def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
-    """``[fn(x) for x in items]``, the items shared out between this process and forked children
-    (``n_threads()`` processes at a time), the children's results (or exceptions) sent back pickled.
+    """``[fn(x) for x in items]``, each item done in a forked child (``n_threads()`` children at a
+    time, the next forked as one finishes), the children's results (or exceptions) sent back pickled.
 
     For independent tasks of a fraction of a second or more whose results are small; a child sees
     this process's memory as it was at its fork and changes nothing in it. In every process, the
@@ -99,24 +99,30 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     try:
         _FORCED = 1
         while pending or running:
-            if running:
-                collect(0.0 if pending else None)
-            while len(pending) > 1 and len(running) < k - 1:  # children take the later items
-                i = pending.pop()
+            # this process only hands out the items: k children at a time, the next forked as soon as
+            # one is done (tasks of unequal length: a child that finishes early never waits for a
+            # long task of this process's own)
+            while pending and len(running) < k:
+                i = pending.pop(0)
                 r, w = os.pipe()
-                with warnings.catch_warnings():
-                    # Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
-                    # threads, which their library quiesces across a fork, and none of our own
-                    warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
-                    pid = os.fork()
+                try:
+                    with warnings.catch_warnings():
+                        # Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
+                        # threads, which their library quiesces across a fork, and none of our own
+                        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
+                        pid = os.fork()
+                except OSError:  # no process to be had: the item is done here
+                    os.close(r)
+                    os.close(w)
+                    out[i] = (True, fn(items[i]))
+                    continue
                 if pid == 0:
                     _child(fn, items[i], r, w)
                 os.close(w)
                 running[r] = (i, pid, bytearray())
                 sel.register(r, selectors.EVENT_READ)
-            if pending:  # this process takes the next item itself
-                i = pending.pop(0)
-                out[i] = (True, fn(items[i]))
+            if running:
+                collect(None)
     finally:
         _FORCED = prev
         for r, (_, pid, _) in running.items():  # after an error: the others are not waited for
@@ -150,5 +156,147 @@ def _child(fn, item, r: int, w: int) -> None:
         with os.fdopen(w, "wb") as f:
             f.write(payload)
     except BaseException:  # noqa: BLE001 - nothing left to report to: the parent redoes the item
+        code = 1
+    os._exit(code)
+
+
+class Shares:
+    """Items of one long computation shared out between this process and forked children, each item
+    always done by the same process, which keeps what it computed for it between calls.
+
+    ``fn(j, msg)`` runs in item ``j``'s process and returns its reply; ``call([msg_0, msg_1, ...])``
+    sends every item its message and returns the replies in item order. Item ``j`` belongs to
+    process ``j % k`` (``k = n_threads()`` processes, this one the first): the rounds of an
+    iterative solver over blocks of frames, whose every round holds the interpreter lock too much
+    for threads to share the cores, and whose blocks' state (large) stays where it was made while
+    the messages and replies (small) go between the processes. The children are forked when the
+    object is made, so ``fn`` sees this process's memory as it was then; with one core, where fork
+    is not there, or in a child of :func:`run_forked`, every item is done here. Use as a context
+    manager (the children end with it). Raises ``RuntimeError`` when a child is lost.
+    """
+
+    def __init__(self, fn: Callable[[int, object], object], n_items: int):
+        self.fn = fn
+        self.n = n_items
+        k = min(n_threads(), n_items)
+        if k <= 1 or not sys.platform.startswith("linux") or not hasattr(os, "fork"):
+            k = 1
+        self.k = k
+        self.children: list[tuple[int, int, int]] = []  # (pid, write end to it, read end from it)
+        global _FORCED
+        prev = _FORCED
+        try:
+            _FORCED = 1  # the children's own run_blocks: one thread each
+            for c in range(1, k):
+                r1, w1 = os.pipe()
+                r2, w2 = os.pipe()
+                try:
+                    with warnings.catch_warnings():
+                        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
+                        pid = os.fork()
+                except OSError:  # no more processes: this one does the rest
+                    for fd in (r1, w1, r2, w2):
+                        os.close(fd)
+                    self.k = c
+                    break
+                if pid == 0:
+                    os.close(w1)
+                    os.close(r2)
+                    for _, w, r in self.children:
+                        os.close(w)
+                        os.close(r)
+                    _serve(fn, r1, w2)
+                os.close(r1)
+                os.close(w2)
+                self.children.append((pid, w1, r2))
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            _FORCED = prev
+
+    def call(self, msgs: list) -> list:
+        """Every item's reply to its message (``msgs[j]`` for item ``j``), in item order."""
+        k = self.k
+        for c, (_, w, _) in enumerate(self.children, start=1):
+            _send(w, [(j, msgs[j]) for j in range(c, self.n, k)])
+        out: list = [None] * self.n
+        for j in range(0, self.n, k):
+            out[j] = self.fn(j, msgs[j])
+        for c, (_, _, r) in enumerate(self.children, start=1):
+            got = _receive(r)
+            if got is None:
+                raise RuntimeError("a worker process ended unexpectedly")
+            ok, replies = got
+            if not ok:
+                raise replies
+            for j, rep in zip(range(c, self.n, k), replies):
+                out[j] = rep
+        return out
+
+    def close(self) -> None:
+        for pid, w, r in self.children:
+            for fd in (w, r):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+            try:
+                os.kill(pid, 9)
+                os.waitpid(pid, 0)
+            except OSError:
+                pass
+        self.children = []
+
+    def __enter__(self) -> "Shares":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _send(fd: int, obj) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    view = memoryview(len(data).to_bytes(8, "little") + data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _read_exactly(fd: int, n: int) -> bytes | None:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = os.read(fd, min(n - len(buf), 1 << 20))
+        if not chunk:
+            return None
+        buf.extend(chunk)
+    return bytes(buf)
+
+
+def _receive(fd: int):
+    head = _read_exactly(fd, 8)
+    if head is None:
+        return None
+    data = _read_exactly(fd, int.from_bytes(head, "little"))
+    return None if data is None else pickle.loads(data)
+
+
+def _serve(fn, r: int, w: int) -> None:
+    """In a forked child of :class:`Shares`: answer each batch of (item, message) with the items'
+    replies (or the first exception) until the parent closes the pipe; leaves without exit handlers."""
+    code = 0
+    try:
+        while True:
+            batch = _receive(r)
+            if batch is None:
+                break
+            try:
+                reply = (True, [fn(j, msg) for j, msg in batch])
+            except BaseException as exc:  # noqa: BLE001 - sent to the parent, raised there
+                reply = (False, exc)
+            try:
+                _send(w, reply)
+            except (pickle.PicklingError, TypeError, AttributeError):
+                _send(w, (False, RuntimeError("a worker's reply would not pickle")))
+    except BaseException:  # noqa: BLE001 - the parent is gone or interrupted: nothing to report to
         code = 1
     os._exit(code)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mocapskel import parallel
-from mocapskel.parallel import n_threads, run_blocks, run_forked
+from mocapskel.parallel import Shares, n_threads, run_blocks, run_forked
 
 PARENT = os.getpid()
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="run_forked forks on Linux only")
@@ -33,7 +33,7 @@ def test_run_forked_runs_in_other_processes_each_on_one_thread(monkeypatch) -> N
     monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
     got = run_forked(_work, range(4))
     pids = {g[2] for g in got}
-    assert PARENT in pids and len(pids) > 1
+    assert PARENT not in pids and len(pids) == 4  # a child for every item, this process hands them out
     assert all(g[3] == 1 for g in got)  # inside a task, run_blocks uses one thread
     assert n_threads() == 2
 
@@ -102,3 +102,71 @@ def test_a_fit_is_the_same_on_one_core_and_on_several(monkeypatch, tmp_path) -> 
     np.testing.assert_array_equal(one.skeleton.joints.topology.pair_cost, two.skeleton.joints.topology.pair_cost)
     np.testing.assert_array_equal(one.rot, two.rot)
     np.testing.assert_array_equal(one.root_pos, two.root_pos)
+
+
+def _keeper():
+    """An item's process keeps the item's state between calls: ("set", v) stores v, ("add", v) adds v
+    to what is stored and answers it, with the process and its thread count."""
+    store: dict[int, float] = {}
+
+    def fn(j: int, msg: tuple):
+        kind, v = msg
+        if kind == "fail" and j == v:
+            raise ValueError(f"bad item {j}")
+        if kind == "die" and j == v and os.getpid() != PARENT:
+            os._exit(3)
+        store[j] = (store[j] + v) if kind == "add" else v
+        return j, store[j], os.getpid(), n_threads()
+
+    return fn
+
+
+def _no_children_left() -> bool:
+    """No child of this process is left, running or not yet reaped."""
+    try:
+        os.waitpid(-1, os.WNOHANG)
+    except ChildProcessError:
+        return True
+    return False
+
+
+@linux_only
+def test_shares_keep_each_items_state_in_its_own_process(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    with Shares(_keeper(), 5) as sh:
+        first = sh.call([("set", float(10 * j)) for j in range(5)])
+        second = sh.call([("add", 1.5)] * 5)
+    assert [g[:2] for g in first] == [(j, 10.0 * j) for j in range(5)]
+    assert [g[:2] for g in second] == [(j, 10.0 * j + 1.5) for j in range(5)]
+    # items 0, 2, 4 here, 1 and 3 in one child, on one thread; the same process on both calls
+    assert [g[2] == PARENT for g in second] == [True, False, True, False, True]
+    assert second[1][2] == second[3][2] == first[1][2] != PARENT
+    assert second[1][3] == 1
+    assert parallel._FORCED is None and _no_children_left()
+
+
+def test_shares_on_one_core_stay_in_this_process(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "1")
+    with Shares(_keeper(), 3) as sh:
+        sh.call([("set", 1.0)] * 3)
+        got = sh.call([("add", 2.0)] * 3)
+    assert [g[1] for g in got] == [3.0, 3.0, 3.0] and {g[2] for g in got} == {PARENT}
+
+
+@linux_only
+def test_shares_raise_a_childs_error_here_and_end_the_children(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    with pytest.raises(ValueError, match="bad item 3"):
+        with Shares(_keeper(), 4) as sh:
+            sh.call([("set", 0.0)] * 4)
+            sh.call([("fail", 3)] * 4)
+    assert _no_children_left()
+
+
+@linux_only
+def test_shares_say_so_when_a_child_is_lost(monkeypatch) -> None:
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    with pytest.raises(RuntimeError, match="ended unexpectedly"):
+        with Shares(_keeper(), 2) as sh:
+            sh.call([("die", 1)] * 2)
+    assert _no_children_left()

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io.bvh import depth_first_order
-from ..parallel import run_blocks
+from ..parallel import Shares
 
 __all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
 
@@ -441,92 +441,100 @@ def refine_skeleton(
     n_chunks = 2 * -(-F // (2 * chunk))
     cut = np.linspace(0, F, n_chunks + 1).round().astype(int)
     chunks = [slice(int(a), int(b)) for a, b in zip(cut[:-1], cut[1:]) if b > a]
+    store: dict[int, list] = {}  # each chunk's (Hff, X, elimination factors), in the process that owns it
+
+    def work(j: int, msg: tuple):
+        """Chunk ``j``'s part of an iteration, in the process that owns it: (0, p, R, d, l) forms its
+        normal equations and returns its share of (Hgg, bg); (1, lam) eliminates its poses with that
+        damping and returns its Y^T Y; (2, dg1, lam) returns its pose steps and their share of the
+        predicted decrease."""
+        sl = chunks[j]
+        if msg[0] == 0:
+            Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, *msg[1:])
+            if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
+                i = ref_frame - sl.start
+                Hff[i, 3:, :] = 0.0
+                Hff[i, :, 3:] = 0.0
+                Hff[i, 3:, 3:] = np.eye(nf - 3)
+                X[i, 3:] = 0.0
+            X[:, :, :ng][:, :, fix_g] = 0.0
+            store[j] = [Hff, X, None]
+            return Hgg_f, bg_f
+        Hff, X, factors = store[j]
+        if msg[0] == 1:
+            # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb,
+            # both from Y^T Y over the chunk's frames (see _Problem.eliminate)
+            D = Hff + (msg[1] * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
+            YtY, store[j][2] = pr.eliminate(D, X)
+            return YtY
+        _, dg1_, lam_ = msg
+        h = pr.back_substitute(factors, dg1_)
+        # the chunk's share of the decrease the damped linear model predicts (below)
+        return h, float(np.einsum("fi,fi->", h, (lam_ * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - X[..., ng]))
+
     it = 0
     system = None
-    for it in range(1, iterations + 1):
-        if system is None:
-            Hgg = np.zeros((ng, ng))
-            bg = np.zeros(ng)
-            blocks = []
-
-            def chunk_system(sl: slice):
-                Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, p, R, d, l)
-                if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
-                    i = ref_frame - sl.start
-                    Hff[i, 3:, :] = 0.0
-                    Hff[i, :, 3:] = 0.0
-                    Hff[i, 3:, 3:] = np.eye(nf - 3)
-                    X[i, 3:] = 0.0
-                X[:, :, :ng][:, :, fix_g] = 0.0
-                return Hff, X, Hgg_f, bg_f
-
-            for Hff, X, Hgg_f, bg_f in run_blocks(chunk_system, chunks):  # summed in chunk order
-                Hgg += Hgg_f
-                bg += bg_f
-                blocks.append((Hff, X))
-            if Hh.shape[0]:
-                Hgg += k_hold * (Hh.T @ Hh)
-                bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
-            if k_prior > 0 and A.shape[0]:
-                Hgg += k_prior * (A.T @ A)
-                bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
-            Hgg[fix_g, :] = 0.0
-            Hgg[:, fix_g] = 0.0
-            Hgg[fix_g, fix_g] = 1.0
-            bg[fix_g] = 0.0
-            system = (Hgg, bg, blocks)
-        Hgg, bg, blocks = system
-        while True:
-            Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
-            rhs = -bg.copy()
-            Ys = []
-
-            def eliminate(block):
-                # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb,
-                # both from Y^T Y over the chunk's frames (see _Problem.eliminate)
-                Hff, X = block
-                D = Hff + (lam * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
-                return pr.eliminate(D, X)
-
-            for YtY, factors in run_blocks(eliminate, blocks):  # summed in chunk order
-                Sg -= YtY[:ng, :ng]
-                rhs += YtY[:ng, ng]
-                Ys.append(factors)
-            dg = np.linalg.solve(Sg, rhs)
-            dg1 = np.append(dg, 1.0)
-            df = np.concatenate([pr.back_substitute(factors, dg1) for factors in Ys])
-            p1 = p + df[:, :3]
-            R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
-            d1 = d.copy()
-            for c in pr.kids:
-                d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
-            l1 = l.copy()
-            for m in pr.used:
-                l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
-            c1 = total(p1, R1, d1, l1)
-            # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
-            # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
-            pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
-            for (Hff, X), sl in zip(blocks, chunks):
-                h, bf = df[sl], X[..., ng]
-                pred += float(np.einsum("fi,fi->", h, (lam * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - bf))
-            if c1 < cost:
+    with Shares(work, len(chunks)) as shares:
+        for it in range(1, iterations + 1):
+            if system is None:
+                Hgg = np.zeros((ng, ng))
+                bg = np.zeros(ng)
+                for Hgg_f, bg_f in shares.call([(0, p, R, d, l)] * len(chunks)):  # summed in chunk order
+                    Hgg += Hgg_f
+                    bg += bg_f
+                if Hh.shape[0]:
+                    Hgg += k_hold * (Hh.T @ Hh)
+                    bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
+                if k_prior > 0 and A.shape[0]:
+                    Hgg += k_prior * (A.T @ A)
+                    bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
+                Hgg[fix_g, :] = 0.0
+                Hgg[:, fix_g] = 0.0
+                Hgg[fix_g, fix_g] = 1.0
+                bg[fix_g] = 0.0
+                system = (Hgg, bg)
+            Hgg, bg = system
+            while True:
+                Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
+                rhs = -bg.copy()
+                for YtY in shares.call([(1, lam)] * len(chunks)):  # summed in chunk order
+                    Sg -= YtY[:ng, :ng]
+                    rhs += YtY[:ng, ng]
+                dg = np.linalg.solve(Sg, rhs)
+                dg1 = np.append(dg, 1.0)
+                steps = shares.call([(2, dg1, lam)] * len(chunks))
+                df = np.concatenate([h for h, _ in steps])
+                p1 = p + df[:, :3]
+                R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
+                d1 = d.copy()
+                for c in pr.kids:
+                    d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
+                l1 = l.copy()
+                for m in pr.used:
+                    l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+                c1 = total(p1, R1, d1, l1)
+                # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
+                # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
+                pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
+                for _, share in steps:
+                    pred += share
+                if c1 < cost:
+                    break
+                lam *= nu  # Nielsen's update: a growing factor while steps fail
+                nu *= 2.0
+                if lam > 1e8:
+                    c1 = cost
+                    break
+            if c1 >= cost:
                 break
-            lam *= nu  # Nielsen's update: a growing factor while steps fail
-            nu *= 2.0
-            if lam > 1e8:
-                c1 = cost
+            rel = (cost - c1) / max(cost, 1e-300)
+            rho = (cost - c1) / pred if pred > 0 else 1.0
+            p, R, d, l, cost = p1, R1, d1, l1, c1
+            system = None
+            lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
+            nu = 2.0
+            if rel < tol:
                 break
-        if c1 >= cost:
-            break
-        rel = (cost - c1) / max(cost, 1e-300)
-        rho = (cost - c1) / pred if pred > 0 else 1.0
-        p, R, d, l, cost = p1, R1, d1, l1, c1
-        system = None
-        lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
-        nu = 2.0
-        if rel < tol:
-            break
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)

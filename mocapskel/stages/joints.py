@@ -33,7 +33,7 @@ import numpy as np
 
 from ..artifacts import Joints, Topology
 from ..errors import DataError
-from ..parallel import run_blocks
+from ..parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import distance_penalty, jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses
@@ -142,7 +142,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 return solve_tree(groups, edges, alpha=alpha, max_frames=params.jmv_frames)
             return jmv_joint_long(groups[edges[e][0]], groups[edges[e][1]], alpha=alpha, max_frames=params.jmv_frames)
 
-        fitted = dict(zip([-1] + todo, run_blocks(fit_job, [-1] + todo))) if todo else {}
+        fitted = dict(zip([-1] + todo, run_forked(fit_job, [-1] + todo))) if todo else {}
         for e, (a, b) in enumerate(edges):
             if done[e]:
                 continue
