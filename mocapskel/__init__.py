@@ -5,9 +5,14 @@ import os as _os
 # matrices are small and many; BLAS threads gain little on them and, beside
 # any other busy process (a batch's other workers, say), spin against each
 # other and run several times slower. Batches parallelise over takes instead.
-# (Only effective when numpy is first imported after this.)
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    _os.environ.setdefault(_var, "1")
-del _var
+# These variables act only where numpy is first imported after this; where it was
+# imported before (``import numpy`` then ``import mocapskel``: twice the time of a fit
+# measured on two cores), the pipeline's entry points set the same limit at run time
+# (see mocapskel.parallel.one_blas_thread).
+_BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+BLAS_THREADS_CHOSEN = any(_v in _os.environ for _v in _BLAS_VARS)  # the user's choice is kept
+for _v in _BLAS_VARS:
+    _os.environ.setdefault(_v, "1")
+del _v
 
 __version__ = "0.1.0"

@@ -20,6 +20,7 @@ from . import artifacts
 from .artifacts import Markers
 from .cache import Cache, file_key, stage_key
 from .errors import DataError, InputError, UsageError
+from .parallel import one_blas_thread
 
 log = logging.getLogger("mocapskel")
 
@@ -96,6 +97,7 @@ def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions(), *, ha
     return read_markers(p, exclude=read.exclude, include=read.include), key
 
 
+@one_blas_thread
 def run_until(
     source: str | os.PathLike | Any,
     target: str,
@@ -326,6 +328,7 @@ def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache
     return main
 
 
+@one_blas_thread
 def solve(
     source: str | os.PathLike | Any,
     skeleton: Any,

@@ -170,3 +170,34 @@ def test_shares_say_so_when_a_child_is_lost(monkeypatch) -> None:
         with Shares(_keeper(), 2) as sh:
             sh.call([("die", 1)] * 2)
     assert _no_children_left()
+
+
+def _blas_threads() -> int:
+    from threadpoolctl import threadpool_info
+
+    return max((int(i["num_threads"]) for i in threadpool_info() if i.get("user_api") == "blas"), default=1)
+
+
+def test_the_pipeline_runs_with_one_blas_thread_where_numpy_came_first(monkeypatch) -> None:
+    """numpy is imported before mocapskel here (as in most users' scripts), so the package's
+    variables came too late: the pipeline's entry points limit BLAS themselves, and give the
+    previous count back after, unless the user chose one."""
+    import mocapskel
+    from mocapskel import pipeline
+    from mocapskel.synth.presets import active_rom, make
+    from threadpoolctl import threadpool_limits
+
+    seen: list[int] = []
+    stage = pipeline.stage_module("segment")
+    real = stage.run
+    monkeypatch.setattr(stage, "run", lambda *a, **k: (seen.append(_blas_threads()), real(*a, **k))[1])
+    take = make(active_rom(1, frames=300))
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        pipeline.run_until(take.markers, "segment", pipeline.make_params())
+        after = _blas_threads()
+        monkeypatch.setattr(mocapskel, "BLAS_THREADS_CHOSEN", True)
+        pipeline.run_until(take.markers, "segment", pipeline.make_params())
+    assert seen[0] == 1 and after == before
+    if before > 1:  # a BLAS that honours the limit of 2: the user's choice stands
+        assert seen[1] == before
