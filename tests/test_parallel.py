@@ -192,6 +192,7 @@ def test_the_pipeline_runs_with_one_blas_thread_where_numpy_came_first(monkeypat
     real = stage.run
     monkeypatch.setattr(stage, "run", lambda *a, **k: (seen.append(_blas_threads()), real(*a, **k))[1])
     take = make(active_rom(1, frames=300))
+    monkeypatch.setattr(mocapskel, "BLAS_THREADS_CHOSEN", False)
     with threadpool_limits(limits=2, user_api="blas"):
         before = _blas_threads()
         pipeline.run_until(take.markers, "segment", pipeline.make_params())
@@ -201,3 +202,20 @@ def test_the_pipeline_runs_with_one_blas_thread_where_numpy_came_first(monkeypat
     assert seen[0] == 1 and after == before
     if before > 1:  # a BLAS that honours the limit of 2: the user's choice stands
         assert seen[1] == before
+
+
+def test_blas_variables_set_by_mocapskel_are_not_taken_for_the_users_choice(tmp_path) -> None:
+    """A process started from one that imported mocapskel (a test worker, a batch worker) sees the
+    variables mocapskel set; only variables the user set count as a choice."""
+    import subprocess
+
+    code = "import mocapskel, os; print(mocapskel.BLAS_THREADS_CHOSEN, os.environ['OPENBLAS_NUM_THREADS'])"
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                             "MKL_NUM_THREADS", "MOCAPSKEL_BLAS_DEFAULT")}
+    run = lambda e: subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True,  # noqa: E731
+                                   check=True).stdout.split()
+    assert run(env) == ["False", "1"]  # nothing set: mocapskel's default
+    assert run({**env, "OPENBLAS_NUM_THREADS": "3"}) == ["True", "3"]  # the user's
+    inherited = {**env, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                 "MOCAPSKEL_BLAS_DEFAULT": "1"}
+    assert run(inherited) == ["False", "1"]  # what a parent's mocapskel set
