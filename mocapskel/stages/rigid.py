@@ -678,16 +678,12 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
             m = on[0]
             inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
             shift = t[m] + inward * r
-        d = shift * ax
-        origin[c] = J + d
-        local[skel.marker_segment == c] -= d
+        origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
         moved[skel.names[c]] = round(float(abs(shift)), 1)
     if not moved:
         return skel
-    info = dict(skel.info, deepened=moved)
-    if "refined" in info:  # the report's refinement section names them
-        info["refined"] = dict(info["refined"], deepened_mm=moved)
-    return replace(skel, origin=origin, marker_local=local, info=info)
+    # hinges between two limbs: none is a child of the root, whose origin stays
+    return _with_moves(skel, origin, local, set(), "deepened", moved)
 
 
 def _rest_groups(skel: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -775,10 +771,9 @@ def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: floa
     kept: dict[int, np.ndarray] = {}
     for p in sorted({int(parent[c]) for c in shifts}):
         group = {c: d for c, d in shifts.items() if parent[c] == p}
-        o2, l2 = origin.copy(), local.copy()
+        o2, l2 = origin, local
         for c, d in group.items():
-            o2[c] = o2[c] + d
-            l2[skel.marker_segment == c] -= d
+            o2, l2 = _move_joint(o2, l2, skel.marker_segment, c, d)
         step2 = max(float(d @ d) for d in group.values())
         if _pose_ms(skel, o2, l2, pts) - base <= seen * step2:
             origin, local = o2, l2
@@ -786,19 +781,37 @@ def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: floa
     if not kept:
         return skel
     moved = {skel.names[c]: round(float(np.linalg.norm(d)), 1) for c, d in kept.items()}
+    return _with_moves(skel, origin, local, set(kept), "mirrored", moved)
+
+
+def _with_moves(skel: Skeleton, origin: np.ndarray, local: np.ndarray, kids_moved: set, key: str,
+                moved: dict) -> Skeleton:
+    """``skel`` with rest offsets ``origin``, ``local`` after the joints of ``kids_moved`` were moved
+    (each with its segment's markers kept where they were), ``moved`` ({name: mm}) noted in its info
+    under ``key`` and in the refinement's section as ``key``_mm. The root's origin stays the mean of
+    its children's joints (the refinement's gauge)."""
+    parent = np.asarray(skel.parent)
     root = int(np.flatnonzero(parent < 0)[0])
     kids = np.flatnonzero(parent == root)
+    origin, local = origin.copy(), local.copy()
     pose_root = skel.pose_root
-    if any(int(k) in kept for k in kids):
-        # the root's origin stays the mean of its children's joints (the refinement's gauge)
+    if any(int(k) in kids_moved for k in kids):
         m = origin[kids].mean(0) - skel.origin[kids].mean(0)
         origin[root] = origin[root] + m
         local[skel.marker_segment == root] -= m
         pose_root = pose_root + skel.pose_rot[:, root] @ m
-    info = dict(skel.info, mirrored=moved)
+    info = dict(skel.info, **{key: moved})
     if "refined" in info:  # the report's refinement section names them
-        info["refined"] = dict(info["refined"], mirrored_mm=moved)
+        info["refined"] = dict(info["refined"], **{f"{key}_mm": moved})
     return replace(skel, origin=origin, marker_local=local, info=info, pose_root=pose_root)
+
+
+def _move_joint(origin: np.ndarray, local: np.ndarray, seg: np.ndarray, c: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Copies of rest offsets with segment ``c``'s joint moved by ``d``, its markers kept where they were."""
+    o2, l2 = origin.copy(), local.copy()
+    o2[c] = o2[c] + d
+    l2[seg == c] -= d
+    return o2, l2
 
 
 def _pose_ms(skel: Skeleton, origin: np.ndarray, local: np.ndarray, pts: np.ndarray) -> float:
