@@ -24,7 +24,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
-__all__ = ["Shares", "n_threads", "one_blas_thread", "run_blocks", "run_forked"]
+__all__ = ["Shares", "WorkerLost", "n_threads", "one_blas_thread", "run_blocks", "run_forked"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -182,6 +182,10 @@ def _child(fn, item, r: int, w: int) -> None:
     os._exit(code)
 
 
+class WorkerLost(RuntimeError):
+    """A forked worker of :class:`Shares` ended without answering (killed, or out of memory)."""
+
+
 class Shares:
     """Items of one long computation shared out between this process and forked children, each item
     always done by the same process, which keeps what it computed for it between calls.
@@ -194,13 +198,14 @@ class Shares:
     the messages and replies (small) go between the processes. The children are forked when the
     object is made, so ``fn`` sees this process's memory as it was then; with one core, where fork
     is not there, or in a child of :func:`run_forked`, every item is done here. Use as a context
-    manager (the children end with it). Raises ``RuntimeError`` when a child is lost.
+    manager (the children end with it). Raises :class:`WorkerLost` when a child is lost (the caller
+    can start again with ``processes=1``: every item in this process).
     """
 
-    def __init__(self, fn: Callable[[int, object], object], n_items: int):
+    def __init__(self, fn: Callable[[int, object], object], n_items: int, processes: int | None = None):
         self.fn = fn
         self.n = n_items
-        k = min(n_threads(), n_items)
+        k = min(n_threads() if processes is None else max(1, processes), n_items)
         if k <= 1 or not sys.platform.startswith("linux") or not hasattr(os, "fork"):
             k = 1
         self.k = k
@@ -248,7 +253,7 @@ class Shares:
         for c, (_, _, r) in enumerate(self.children, start=1):
             got = _receive(r)
             if got is None:
-                raise RuntimeError("a worker process ended unexpectedly")
+                raise WorkerLost("a worker process ended unexpectedly")
             ok, replies = got
             if not ok:
                 raise replies

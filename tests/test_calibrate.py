@@ -521,3 +521,43 @@ def test_like_limbs_are_moved_together_into_the_parents_plane_of_symmetry():
     one_side = _slid(skel, np.array([0.0, 0, 0]))
     one_side.marker_local[one_side.marker_segment == 2] += [260.0, 0, 0]  # the left thigh's markers on the right
     assert rigid.mirror_shifts(one_side) == {}
+
+
+def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_marker, monkeypatch):
+    """The refinement's blocks of frames live in forked worker processes; one that dies (killed, out of
+    memory) costs a second run in this process alone, not the fit: the result is the same, bit for bit."""
+    import os
+    import sys
+
+    from mocapskel.solvers import calibrate
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("worker processes are forked on Linux only")
+    take, exact = exact_two_marker
+    rng = np.random.default_rng(1)
+    pts = take.markers.points
+    bad = replace(exact, origin=exact.origin + rng.normal(0, 6.0, exact.origin.shape))
+    use = pick_frames(np.isfinite(pts).all(-1), 300, must=exact.rest_frame)  # 300 frames: 4 blocks
+    ref = int(np.searchsorted(use, exact.rest_frame))
+    centres = ik_stage._centres_by_edges(exact, exact.joints.centres)
+    start = ik_stage.solve(bad, pts[use], centres[use])
+
+    def refine():
+        return refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use],
+                               start.rot, start.root_pos, ref_frame=ref, iterations=5)
+
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "1")
+    alone = refine()
+    parent, real = os.getpid(), calibrate._Problem.normal_equations
+
+    def dies_in_a_child(self, *a, **k):
+        if os.getpid() != parent:
+            os._exit(9)  # a worker killed while it works
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(calibrate._Problem, "normal_equations", dies_in_a_child)
+    monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    again = refine()
+    np.testing.assert_array_equal(again.origin, alone.origin)
+    np.testing.assert_array_equal(again.rot, alone.rot)
+    assert again.n_iter == alone.n_iter == 5
