@@ -269,3 +269,40 @@ def test_walking_upper_arms_hang_on_the_trunk_not_on_each_other(seed):
         nbrs = [b if a == arm else a for a, b in topo.edges.tolist() if arm in (a, b)]
         assert any("TRSO" in codes[s] for s in nbrs), [codes[s] for s in nbrs]
         assert not any(codes[s] & {"LUPA", "RUPA"} for s in nbrs)
+
+
+def test_a_lone_marker_takes_no_partner_that_is_far_more_rigid_with_its_own_group():
+    """A lone thigh marker (4) and a group of four pelvis markers (0-3): a pelvis marker whose distance to
+    the thigh marker varies 8 mm against 2 mm to its own group is the pelvis's, not a marker on the hip's
+    axis; one that varies 3 mm to both sides is (a knee or elbow marker), and pairs."""
+    from mocapskel.stages.segment import PARTNER_RATIO, pair_lone_markers
+
+    M = 5
+    mean_d = np.full((M, M), 150.0)
+    lab = np.array([0, 0, 0, 0, 1])
+    std = np.full((M, M), 30.0)
+    std[:4, :4] = 2.0
+    std[3, 4] = std[4, 3] = 8.0  # within tau_join, but four times its std to its own group
+    got, moves = pair_lone_markers(std, mean_d, lab, tau_join=10.0, tau_free=1.0, reach=500.0)
+    assert 8.0 > PARTNER_RATIO * 2.0
+    assert got.tolist() == [0, 0, 0, 0, 1] and moves == []  # left alone: a segment of one marker
+    std[3, :3] = std[:3, 3] = 3.0  # now on an axis: 3 mm to its group, 3 mm to the lone marker
+    std[3, 4] = std[4, 3] = 3.0
+    got, moves = pair_lone_markers(std, mean_d, lab, tau_join=10.0, tau_free=1.0, reach=500.0)
+    assert got.tolist() == [0, 0, 0, 1, 1] and moves == [(3, "paired")]
+
+
+def test_a_lone_marker_is_absorbed_by_the_group_nearest_in_space():
+    """Skin on a body is on it: a lone marker (4) 150 mm from one group (0, 1) and 500 mm from another
+    (2, 3) that it varies less against joins the near one, or none."""
+    from mocapskel.stages.segment import absorb_lone_markers
+
+    M = 5
+    mean_d = np.full((M, M), 150.0)
+    mean_d[4, 2:4] = mean_d[2:4, 4] = 500.0
+    lab = np.array([0, 0, 1, 1, 2])
+    std = np.full((M, M), 2.0)
+    std[4, :2] = std[:2, 4] = 5.0
+    std[4, 2:4] = std[2:4, 4] = 3.0
+    assert absorb_lone_markers(std, mean_d, lab, 6.0, 600.0)[0].tolist() == [0, 0, 1, 1, 0]
+    assert absorb_lone_markers(std, mean_d, lab, 4.0, 600.0)[0].tolist() == [0, 0, 1, 1, 2]  # not the far one

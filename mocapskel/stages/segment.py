@@ -27,7 +27,7 @@ from ..errors import DataError
 from ..solvers.partition import best_split, rigid_rms, scatter_in_frame
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 7
+VERSION = 8
 
 
 @dataclass(frozen=True)
@@ -290,6 +290,15 @@ def _extent(mean_d: np.ndarray, idx: np.ndarray) -> float:
     return float(np.nanmax(mean_d[np.ix_(idx, idx)])) if idx.size > 1 else 0.0
 
 
+#: A lone marker takes a partner from a group only if their distance varies by at most this many
+#: times the partner's mean std to its own group: a marker on a joint axis keeps its distances to both
+#: sides about equally (a knee or an elbow marker: 0.6-1.9 times on real takes), while one that
+#: belongs to its group varies three times as much or more against the lone marker (a pelvis marker
+#: taken by a thigh marker on CMU and HDM05 takes: 2.9-260 times; a spine marker taken by an
+#: acromion marker: 3.2 times).
+PARTNER_RATIO = 2.5
+
+
 def pair_lone_markers(
     std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_join: float, tau_free: float, reach: float,
     depth: int = 4,
@@ -300,7 +309,8 @@ def pair_lone_markers(
     neighbouring segments, so the rigid groups may put it with the segment that
     needs it less and leave the other side's marker alone. A lone marker ``m`` may
     join a group (mean std to it at most ``tau_join``) or take a partner ``j``
-    (std at most ``tau_join``) from its group; if that leaves ``j``'s group with one
+    (std at most ``tau_join``, and at most ``PARTNER_RATIO`` times ``j``'s mean std to
+    the rest of its group: a marker on the axis) from its group; if that leaves ``j``'s group with one
     marker, that marker must in turn find a partner the same way (a chain of at most
     ``depth`` moves). The cheapest chain (sum of the new stds) that leaves nobody
     newly alone wins. A marker still alone that varies against its nearest group by
@@ -340,6 +350,8 @@ def pair_lone_markers(
             if mem.size < 2:
                 continue
             c = float(S[m, j])
+            if c > PARTNER_RATIO * float(S[j, mem[mem != j]].mean()):
+                continue  # j is far more rigid with its own group: not a marker on the axis between the two
             if best is not None and c >= best[0]:
                 continue
             L2 = L.copy()
@@ -434,9 +446,10 @@ def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau:
 
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
                         reach: float, nearest: bool = False) -> tuple[np.ndarray, list[tuple[int, str]]]:
-    """Each marker alone in its group that varies against its nearest group of several markers (mean
-    std, all of them within ``reach``; with ``nearest``: against every member, the nearest of them
-    within ``reach``) by at most ``tau_free`` joins that group ("absorbed").
+    """Each marker alone in its group that varies against its nearest group of several markers (nearest
+    in mean distance among those with all of them within ``reach``; with ``nearest``: the nearest of
+    them within ``reach``) by at most ``tau_free`` (mean std; with ``nearest``: against every member)
+    joins that group ("absorbed").
     Returns the labels numbered by first marker and the moves."""
     lab = np.array(labels, dtype=int)
     M = lab.size
@@ -450,9 +463,14 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
             mem = np.flatnonzero(lab == g)
             mem = mem[mem != m]
             if g != lab[m] and mem.size > 1 and (near[m, mem].any() if nearest else near[m, mem].all()):
-                costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g)))
+                costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g),
+                              float(np.nan_to_num(mean_d[m, mem], nan=np.inf).mean())))
         if costs:
-            c, g = min(costs)
+            # skin on a body is on it: the group nearest in space, not the one that varies least anywhere
+            # within reach (a real walk's lone thigh marker varied least against the same side's upper arm)
+            costs = [min(costs, key=lambda x: x[2])]
+        if costs:
+            c, g, _ = min(costs)
             if c <= tau_free:
                 lab[m] = g
                 moves.append((m, "absorbed"))
