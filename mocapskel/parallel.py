@@ -128,11 +128,7 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
                 i = pending.pop(0)
                 r, w = os.pipe()
                 try:
-                    with warnings.catch_warnings():
-                        # Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
-                        # threads, which their library quiesces across a fork, and none of our own
-                        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
-                        pid = os.fork()
+                    pid = _fork()
                 except OSError:  # no process to be had: the item is done here
                     os.close(r)
                     os.close(w)
@@ -162,6 +158,14 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
             raise value
         results.append(value)
     return results
+
+
+def _fork() -> int:
+    """``os.fork()``. Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
+    threads, which their library quiesces across a fork, and none of our own."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
+        return os.fork()
 
 
 def _child(fn, item, r: int, w: int) -> None:
@@ -218,9 +222,7 @@ class Shares:
                 r1, w1 = os.pipe()
                 r2, w2 = os.pipe()
                 try:
-                    with warnings.catch_warnings():
-                        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
-                        pid = os.fork()
+                    pid = _fork()
                 except OSError:  # no more processes: this one does the rest
                     for fd in (r1, w1, r2, w2):
                         os.close(fd)
