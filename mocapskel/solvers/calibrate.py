@@ -425,8 +425,7 @@ def refine_skeleton(
             c += k_prior * float(r @ r)
         return c
 
-    c0 = cost = total(p, R, d, l)
-    lam, nu = 1e-4, 2.0
+    c0 = total(p, R, d, l)
     # gauge: the root's origin is fixed in the root by one of its joints (or markers)
     rk0 = [c for c in pr.kids if parent[c] == pr.root]
     fix_g = np.zeros(ng, dtype=bool)
@@ -472,80 +471,84 @@ def refine_skeleton(
         # the chunk's share of the decrease the damped linear model predicts (below)
         return h, float(np.einsum("fi,fi->", h, (lam_ * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - X[..., ng]))
 
-    start = (p, R, d, l, cost, lam, nu)
-    for processes in (None, 1):
-        # a lost worker process (killed, out of memory): the whole loop again in this process alone,
-        # which gives the same result
-        p, R, d, l, cost, lam, nu = start
+    def iterate(processes: int | None) -> tuple:
+        """Levenberg-Marquardt from the start, the chunks shared among ``processes`` (None: as many as
+        the cores allow): the final (p, R, d, l, cost) and the iterations taken."""
+        p, R, d, l, cost = p0, R0, d0, l0, c0
+        lam, nu = 1e-4, 2.0
         store.clear()
         it = 0
         system = None
-        try:
-            with Shares(work, len(chunks), processes) as shares:
-                for it in range(1, iterations + 1):
-                    if system is None:
-                        Hgg = np.zeros((ng, ng))
-                        bg = np.zeros(ng)
-                        for Hgg_f, bg_f in shares.call([(0, p, R, d, l)] * len(chunks)):  # summed in chunk order
-                            Hgg += Hgg_f
-                            bg += bg_f
-                        if Hh.shape[0]:
-                            Hgg += k_hold * (Hh.T @ Hh)
-                            bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
-                        if k_prior > 0 and A.shape[0]:
-                            Hgg += k_prior * (A.T @ A)
-                            bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
-                        Hgg[fix_g, :] = 0.0
-                        Hgg[:, fix_g] = 0.0
-                        Hgg[fix_g, fix_g] = 1.0
-                        bg[fix_g] = 0.0
-                        system = (Hgg, bg)
-                    Hgg, bg = system
-                    while True:
-                        Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
-                        rhs = -bg.copy()
-                        for YtY in shares.call([(1, lam)] * len(chunks)):  # summed in chunk order
-                            Sg -= YtY[:ng, :ng]
-                            rhs += YtY[:ng, ng]
-                        dg = np.linalg.solve(Sg, rhs)
-                        dg1 = np.append(dg, 1.0)
-                        steps = shares.call([(2, dg1, lam)] * len(chunks))
-                        df = np.concatenate([h for h, _ in steps])
-                        p1 = p + df[:, :3]
-                        R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
-                        d1 = d.copy()
-                        for c in pr.kids:
-                            d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
-                        l1 = l.copy()
-                        for m in pr.used:
-                            l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
-                        c1 = total(p1, R1, d1, l1)
-                        # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
-                        # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
-                        pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
-                        for _, share in steps:
-                            pred += share
-                        if c1 < cost:
-                            break
-                        lam *= nu  # Nielsen's update: a growing factor while steps fail
-                        nu *= 2.0
-                        if lam > 1e8:
-                            c1 = cost
-                            break
-                    if c1 >= cost:
+        with Shares(work, len(chunks), processes) as shares:
+            for it in range(1, iterations + 1):
+                if system is None:
+                    Hgg = np.zeros((ng, ng))
+                    bg = np.zeros(ng)
+                    for Hgg_f, bg_f in shares.call([(0, p, R, d, l)] * len(chunks)):  # summed in chunk order
+                        Hgg += Hgg_f
+                        bg += bg_f
+                    if Hh.shape[0]:
+                        Hgg += k_hold * (Hh.T @ Hh)
+                        bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
+                    if k_prior > 0 and A.shape[0]:
+                        Hgg += k_prior * (A.T @ A)
+                        bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
+                    Hgg[fix_g, :] = 0.0
+                    Hgg[:, fix_g] = 0.0
+                    Hgg[fix_g, fix_g] = 1.0
+                    bg[fix_g] = 0.0
+                    system = (Hgg, bg)
+                Hgg, bg = system
+                while True:
+                    Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
+                    rhs = -bg.copy()
+                    for YtY in shares.call([(1, lam)] * len(chunks)):  # summed in chunk order
+                        Sg -= YtY[:ng, :ng]
+                        rhs += YtY[:ng, ng]
+                    dg = np.linalg.solve(Sg, rhs)
+                    dg1 = np.append(dg, 1.0)
+                    steps = shares.call([(2, dg1, lam)] * len(chunks))
+                    df = np.concatenate([h for h, _ in steps])
+                    p1 = p + df[:, :3]
+                    R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
+                    d1 = d.copy()
+                    for c in pr.kids:
+                        d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
+                    l1 = l.copy()
+                    for m in pr.used:
+                        l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+                    c1 = total(p1, R1, d1, l1)
+                    # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
+                    # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
+                    pred = float(dg @ ((lam * np.diag(Hgg) + 1e-9) * dg - bg))
+                    for _, share in steps:
+                        pred += share
+                    if c1 < cost:
                         break
-                    rel = (cost - c1) / max(cost, 1e-300)
-                    rho = (cost - c1) / pred if pred > 0 else 1.0
-                    p, R, d, l, cost = p1, R1, d1, l1, c1
-                    system = None
-                    lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
-                    nu = 2.0
-                    if rel < tol:
+                    lam *= nu  # Nielsen's update: a growing factor while steps fail
+                    nu *= 2.0
+                    if lam > 1e8:
+                        c1 = cost
                         break
-            break
-        except WorkerLost:
-            if processes == 1:
-                raise
+                if c1 >= cost:
+                    break
+                rel = (cost - c1) / max(cost, 1e-300)
+                rho = (cost - c1) / pred if pred > 0 else 1.0
+                p, R, d, l, cost = p1, R1, d1, l1, c1
+                system = None
+                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
+                nu = 2.0
+                if rel < tol:
+                    break
+        return p, R, d, l, cost, it
+
+    p0, R0, d0, l0 = p, R, d, l
+    try:
+        p, R, d, l, cost, it = iterate(None)
+    except WorkerLost:
+        # a lost worker process (killed, out of memory): the whole fit again in this process alone,
+        # which gives the same result
+        p, R, d, l, cost, it = iterate(1)
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
