@@ -141,6 +141,22 @@ def test_the_acromion_rides_the_shoulder_girdle_with_the_shoulder_centre():
     assert np.ptp(np.linalg.norm(_col(clean, "C7") - clean.truth.joints[:, J["Lumbar"]], axis=1)) < 1e-6
 
 
+def test_the_acromion_may_go_with_the_thorax_or_its_arm(walk):
+    """The acromion rides the shoulder girdle, which has no segment in the truth: on a walk its
+    distances to the thorax's markers (on average) and to its upper arm's marker vary alike (so a grouping with
+    either is defensible), and the truth lists both segments for it, without naming a joint."""
+    skin, _ = walk
+    info = skin.truth.info
+    ok = dict(zip(info["physical_labels"], info["marker_segments_ok"]))
+    for side in "LR":
+        assert [SEGMENTS[s] if isinstance(s, int) else s for s in ok[side + "SHO"]] == ["Torso", side + "UpperArm"]
+        assert side + "SHO" not in info["joint_markers"]
+        sho = _col(skin, side + "SHO")
+        std = {lb: np.std(np.linalg.norm(sho - _col(skin, lb), axis=1)) for lb in ("C7", "T10", "CLAV", "STRN", side + "UPA")}
+        thorax = np.mean([std[lb] for lb in ("C7", "T10", "CLAV", "STRN")])
+        assert 0.5 < std[side + "UPA"] / thorax < 2.0, std
+
+
 def test_rigid_markers_keep_their_distance_to_their_joints_up_to_the_skin_amplitude(walk):
     skin, clean = walk
     amp = skin.truth.info["skin_p2p_mm"]
