@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             print(rows[-1], file=sys.stderr)
     from mocapskel.synth.presets import realistic
 
-    for motion in ("walk", "kick", "reach"):
+    for motion in ("walk", "run", "kick", "reach"):
         for seed in (1, 2, 3):
             take = make(realistic(seed=seed, frames=600, motion=motion, markerset="cmu41"))
             res = pipeline.fit(take.markers, pipeline.make_params())
