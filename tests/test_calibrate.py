@@ -280,6 +280,50 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     assert np.linalg.norm(got.origin[c] - deep.origin[c]) > 0.2 * half  # not where one marker puts it
 
 
+def test_the_end_of_a_limb_goes_to_the_middle_of_its_markers_along_its_axis(kick):
+    """A generated kick (seed 2): the fit leaves the left ankle at the ankle marker, on the lateral
+    malleolus, 40 mm from the truth. Moved along its hinge axis to the mean position of the foot's
+    markers (heel, toe, fifth metatarsal), it comes within 16 mm. Nothing else moves: the right ankle
+    already sat inside the limb (farther from its marker than from the foot's middle), the elbows'
+    forearms carry their markers at the wrist, farther from the joint than the upper arm's, and every
+    segment keeps its markers where they were."""
+    take, joints, _ = kick
+    on = rigid.run(joints)
+    off = rigid.run(joints, rigid.Params(leaf_centre=False))
+    moved = on.info.get("leaf_centred", {})
+    assert len(moved) == 1 and 10.0 < next(iter(moved.values())) < 60.0, moved
+    c = on.names.index(next(iter(moved)))
+    assert {on.labels[m] for m in np.flatnonzero(on.marker_segment == c)} == {"LHEE", "LTOE", "LMT5"}
+    err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (on, off)]
+    assert err[0]["LFoot"] < err[1]["LFoot"] - 15.0 and err[0]["LFoot"] < 25.0, (err[0], err[1])
+    assert all(abs(err[0][k] - err[1][k]) < 2.0 for k in err[0] if k != "LFoot"), (err[0], err[1])
+    assert np.allclose(rigid._rest_markers(on), rigid._rest_markers(off), atol=1e-9, equal_nan=True)
+    assert "leaf_centred_mm" in on.info["refined"]
+
+
+def test_an_end_of_limb_hinge_inside_the_limb_stays_one_at_its_marker_goes(kick):
+    """The kick's moved left ankle, slid 20 mm farther from its ankle marker along the axis, is still
+    farther from the marker than from the foot's middle (inside the limb): it stays. Slid out onto the
+    marker, it goes back to the foot's middle."""
+    _, joints, _ = kick
+    on = rigid.run(joints)
+    off = rigid.run(joints, rigid.Params(leaf_centre=False))
+    c = on.names.index(next(iter(on.info["leaf_centred"])))
+    u = on.origin[c] - off.origin[c]
+    step = float(np.linalg.norm(u))
+    u /= step  # from the marker's side inward, along the hinge axis
+
+    def slid(d: float):
+        o, lc = rigid._move_joint(on.origin, on.marker_local, on.marker_segment, c, d * u)
+        return replace(on, origin=o, marker_local=lc, info={k: v for k, v in on.info.items() if k != "leaf_centred"})
+
+    inside = slid(20.0)
+    assert rigid.centre_leaf_hinges(inside, rigid.Params().hinge_ratio).info.get("leaf_centred") is None
+    out = rigid.centre_leaf_hinges(slid(-step), rigid.Params().hinge_ratio)
+    assert on.names[c] in out.info["leaf_centred"]
+    assert np.linalg.norm(out.origin[c] - on.origin[c]) < 3.0  # back where the first move put it
+
+
 def test_a_walks_hips_are_put_back_into_the_pelvis_plane_of_symmetry():
     """Realistic CMU marker set, a walk: both hips turn about one axis along the line between them, which
     the markers do not fix; the refinement slid the left hip 100 mm along it. Moved together into the
