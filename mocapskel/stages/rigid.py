@@ -790,6 +790,16 @@ def centre_mirrored_pairs(skel: Skeleton, seen: float = MIRROR_SEEN, match: floa
     return _with_moves(skel, origin, local, set(kept), "mirrored", moved)
 
 
+#: The end of a limb is a short segment: its markers' centroid at most this fraction of its parent's
+#: bone length from the joint (a foot's heel, toe and metatarsal markers: 0.15-0.3 of the shank; a
+#: forearm carrying its markers at the wrist, a head band on a neck: 0.5 and more).
+LEAF_SHORT = 0.5
+#: ...and its markers lie across the hinge axis from the joint: their centroid's step along the axis at
+#: most this fraction of its distance (45 degrees; feet whose centre sat at the ankle marker: 0.3-0.6;
+#: two-marker toe and heel-toe groups that turn about an axis along them: 0.8-1.0).
+LEAF_ACROSS = 0.7
+
+
 def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = None) -> Skeleton:
     """Hinges at the end of a limb get their centre, along the axis, at the mean position of the child's
     markers.
@@ -804,8 +814,9 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
     markers are at the wrist), surround the end segment's middle, which lies under the joint centre.
     For a leaf segment with two or more markers whose parent is not the root, whose relative rotations
     turn about one axis (a hinge the refinement held, or a spread about the second axis at most
-    ``hinge_ratio`` of the first), the centre is moved along that axis to the mean axial position of
-    the child's markers, unless a marker of the parent over the axis (nearer it than half the child's
+    ``hinge_ratio`` of the first), short beside its parent (``LEAF_SHORT``) and with its markers across
+    the axis from the joint (``LEAF_ACROSS``), the centre is moved along that axis to the mean axial
+    position of the child's markers, unless a marker of the parent over the axis (nearer it than half the child's
     markers' distance from the centre) shows the centre already lies farther from that skin marker
     than from the child's middle (inside the limb, where the fit put it), and unless the markers see
     the move: it is made only when it raises the mean squared marker residual on the refinement's
@@ -855,6 +866,9 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         if ax is None:
             continue
         shift = float(np.mean((pos[mk] - J) @ ax))
+        line = _bone_line(skel, p)
+        if line is None or dc > LEAF_SHORT * line[2] or abs(shift) > LEAF_ACROSS * dc:
+            continue  # not a short end segment whose markers lie across the axis from the joint
         t = (pos[mp] - J) @ ax
         off = np.linalg.norm(pos[mp] - J - t[:, None] * ax, axis=1)
         over = np.flatnonzero(off <= 0.5 * dc)
