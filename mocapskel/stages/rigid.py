@@ -798,6 +798,12 @@ LEAF_SHORT = 0.5
 #: most this fraction of its distance (45 degrees; feet whose centre sat at the ankle marker: 0.3-0.6;
 #: two-marker toe and heel-toe groups that turn about an axis along them: 0.8-1.0).
 LEAF_ACROSS = 0.7
+#: ...and its motion is not exercised in every direction: the spread of its relative rotations about
+#: the third axis at most this fraction of that about the second (walks', runs' and kicks' ankles,
+#: generated and real, turn mostly about the flexion axis and one other: 0.31-0.79; a generated
+#: range-of-motion take's ankles, turned alike every way across the flexion axis, 0.91-0.96: there
+#: the motion fixed the centre, 3-6 mm from the truth, and the foot's markers sit anywhere on it).
+LEAF_PLANAR = 0.85
 
 
 def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = None) -> Skeleton:
@@ -814,7 +820,7 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
     markers are at the wrist), surround the end segment's middle, which lies under the joint centre.
     For a leaf segment with two or more markers whose parent is not the root, whose relative rotations
     turn about one axis (a hinge the refinement held, or a spread about the second axis at most
-    ``hinge_ratio`` of the first), short beside its parent (``LEAF_SHORT``) and with its markers across
+    ``hinge_ratio`` of the first) and not exercised in every direction (``LEAF_PLANAR``), short beside its parent (``LEAF_SHORT``) and with its markers across
     the axis from the joint (``LEAF_ACROSS``), the centre is moved along that axis to the mean axial
     position of the child's markers, unless a marker of the parent over the axis (nearer it than half the child's
     markers' distance from the centre) shows the centre already lies farther from that skin marker
@@ -865,6 +871,9 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
             ax = _hinge_direction(rel, hinge_ratio)
         if ax is None:
             continue
+        sv = np.linalg.svd(_relative_rotvecs(rel), compute_uv=False)
+        if not sv[1] > 0 or sv[2] > LEAF_PLANAR * sv[1]:
+            continue  # it turns alike about every axis across the main one: exercised in every direction
         shift = float(np.mean((pos[mk] - J) @ ax))
         line = _bone_line(skel, p)
         if line is None or dc > LEAF_SHORT * line[2] or abs(shift) > LEAF_ACROSS * dc:
