@@ -800,9 +800,10 @@ LEAF_SHORT = 0.5
 LEAF_ACROSS = 0.7
 #: ...and its motion is not exercised in every direction: the spread of its relative rotations about
 #: the third axis at most this fraction of that about the second (walks', runs' and kicks' ankles,
-#: generated and real, turn mostly about the flexion axis and one other: 0.31-0.79; a generated
+#: generated and real, turn mostly about the flexion axis and one other: 0.30-0.79; a generated
 #: range-of-motion take's ankles, turned alike every way across the flexion axis, 0.91-0.96: there
-#: the motion fixed the centre, 3-6 mm from the truth, and the foot's markers sit anywhere on it).
+#: the motion fixes the centre (the takes' joints 3-6 mm rms from the truth), and the foot's markers
+#: sit anywhere on it).
 LEAF_PLANAR = 0.85
 
 
