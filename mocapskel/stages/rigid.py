@@ -829,9 +829,9 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
     the move: it is made only when it raises the mean squared marker residual on the refinement's
     frames (poses solved again) by at most ``seen`` (mm^2; None: the square of the take's own level of
     skin motion and noise, measured by the segment stage). Moved so, the ankles of generated walks,
-    runs and kicks raised it by 0.01-0.1 of that, a real walk's 0.9; the wrists of a generated
-    range-of-motion take, whose markers sit anywhere on the hand and whose motion fixes them better,
-    would have moved 32 and 105 mm (3 and 12 times it). Each segment keeps its markers where they
+    runs and kicks raised it by 0.004-0.1 of that, a real walk's 0.9; the left wrist of a generated
+    range-of-motion take, whose markers sit anywhere on the hand and whose motion fixes it better,
+    would have moved 105 mm (12 times it). Each segment keeps its markers where they
     were; the move is along the axis the joint turns about, so the poses still fit.
     """
     if skel.pose_rot is None or skel.pose_frames is None:
