@@ -520,6 +520,14 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos), hold
 
 
+def _relative_rotations(rot: np.ndarray, p: int, c: int, least: int = 10) -> np.ndarray | None:
+    """``R_p^T R_c`` of poses ``rot`` (F, S, 3, 3) on the frames where both are known, or None when they
+    are fewer than ``least`` (too few to tell how a joint turns)."""
+    rel = np.swapaxes(rot[:, p], 1, 2) @ rot[:, c]
+    rel = rel[np.isfinite(rel).all((1, 2))]
+    return rel if len(rel) >= least else None
+
+
 def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
     """(F, 3) rotation vectors of the rotations ``rel`` (F, 3, 3) about their chordal mean."""
     return matrix_to_rotvec(np.swapaxes(project_to_so3(rel.sum(0)), 0, 1)[None] @ rel)
@@ -630,9 +638,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
         p = int(skel.parent[c])
         if skel.parent[p] < 0 or not (skel.parent == c).any():
             continue  # the root or a leaf on one side: one limb to measure a half-width on
-        rel = np.swapaxes(R[:, p], 1, 2) @ R[:, c]
-        rel = rel[np.isfinite(rel).all((1, 2))]
-        if len(rel) < 10:
+        rel = _relative_rotations(R, p, int(c))
+        if rel is None:
             continue
         J = origin[c]
         near = [int(m) for m in np.flatnonzero(ok_m & np.isin(skel.marker_segment, [p, c]))]
@@ -861,9 +868,8 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         dc = float(np.linalg.norm(pos[mk].mean(0) - J))
         if not dc < float(np.linalg.norm(pos[mp].mean(0) - J)):
             continue  # the child's markers are no nearer the joint than the parent's
-        rel = np.swapaxes(R[:, p], 1, 2) @ R[:, c]
-        rel = rel[np.isfinite(rel).all((1, 2))]
-        if len(rel) < 10:
+        rel = _relative_rotations(R, p, int(c))
+        if rel is None:
             continue
         if held is None:
             held = _hinge_axes(skel, R, hinge_ratio)
@@ -1025,10 +1031,9 @@ def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int
             continue  # a joint of a one- or two-marker segment: its start is too rough to hold
         c = int(b) if skel.parent[int(b)] == int(a) else int(a)
         p = int(skel.parent[c])
-        ok = np.isfinite(rot[:, p, 0, 0]) & np.isfinite(rot[:, c, 0, 0])
-        if ok.sum() < 10:
+        rel = _relative_rotations(rot, p, c)
+        if rel is None:
             continue
-        rel = np.swapaxes(rot[ok, p], 1, 2) @ rot[ok, c]
         if not placed and _hinge_direction(rel, hinge_ratio) is None:
             continue
         M = rel.mean(0)

@@ -468,9 +468,7 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
         if costs:
             # skin on a body is on it: the group nearest in space, not the one that varies least anywhere
             # within reach (a real walk's lone thigh marker varied least against the same side's upper arm)
-            costs = [min(costs, key=lambda x: x[2])]
-        if costs:
-            c, g, _ = min(costs)
+            c, g, _ = min(costs, key=lambda x: x[2])
             if c <= tau_free:
                 lab[m] = g
                 moves.append((m, "absorbed"))
