@@ -119,3 +119,45 @@ def test_realistic_reach_trunk_is_split_from_the_still_pelvis_and_leg():
     # without the test, the trunk stays with the pelvis and leg (the case this guards)
     seg0 = segment.run(take.markers, segment.Params(split_nonrigid=False))
     assert {int(seg0.group[i]) for i in trunk} & {int(seg0.group[i]) for i in lower}
+
+
+def test_a_marker_put_with_the_wrong_body_goes_to_the_body_whose_frame_holds_it():
+    """A marker of body B labelled with body A's group moves to B's group ("reframed"): in A's frame it
+    sweeps an arc as B turns, in B's it stays put. A's own markers stay."""
+    rng = np.random.default_rng(6)
+    P, body = _two_bodies(rng, n_a=5, n_b=5, noise=0.5)
+    lab = body.copy()
+    m = int(np.flatnonzero(body == 1)[0])
+    lab[m] = 0
+    got, moves = segment.reassign_by_frame(P, lab)
+    assert moves == [(m, "reframed")]
+    assert np.array_equal(got, body) or np.array_equal(got, 1 - body)
+    assert segment.reassign_by_frame(P, body)[1] == []  # the right groups: nothing moves
+
+
+def test_no_marker_moves_between_groups_that_do_not_move_apart():
+    """Where two groups hardly move against each other, a marker's place between them is arbitrary: the
+    frames do not tell, and nothing moves (one rigid body labelled as two groups)."""
+    rng = np.random.default_rng(7)
+    P, body = _two_bodies(rng, n_a=5, n_b=5, noise=0.5, amp_deg=0.0)
+    lab = body.copy()
+    lab[int(np.flatnonzero(body == 1)[0])] = 0
+    assert segment.reassign_by_frame(P, lab)[1] == []
+
+
+def test_a_frames_own_fitting_error_is_not_taken_for_motion():
+    """A point riding rigidly 250 mm from three markers 30 mm apart scatters in their frame by the
+    frame's turn (its fitting error times the lever); beyond that it hardly moves, while a point that
+    slides 8 mm rms on its own keeps its motion."""
+    rng = np.random.default_rng(8)
+    K = 400
+    shape = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 5.0], [250.0, 40.0, -30.0], [-200.0, 60.0, 40.0]])
+    t = np.linspace(0.0, 2.0 * np.pi, K)
+    R = rotvec_to_matrix(np.deg2rad(30.0) * np.column_stack([np.sin(t), np.cos(2 * t), 0.5 * np.sin(3 * t)]))
+    P = np.einsum("kij,nj->kni", R, shape) + rng.normal(0.0, 1.0, (K, 5, 3))
+    P[:, 4] += np.einsum("kij,kj->ki", R, 8.0 * np.column_stack([np.sin(3 * t), np.cos(5 * t), np.sin(7 * t)]) / np.sqrt(1.5))
+    whole, loo = segment._frame_scatters(P, np.array([0, 1, 2]))
+    raw, beyond = whole
+    assert np.isnan(loo).all()  # three markers: no frame without one of them
+    assert raw[3] > 10.0 and beyond[3] < 0.5 * raw[3]  # rigid: the scatter is mostly the frame's turn (150 frames)
+    assert 6.0 < beyond[4] < 11.0  # its own 8 mm rms kept
