@@ -51,6 +51,23 @@ def test_realistic_kicks_are_named_as_a_person_segment_for_segment(kick) -> None
     assert list(naming.names) == want
 
 
+@pytest.mark.parametrize("motion", ["walk", "run"])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_realistic_walks_and_runs_are_named_as_a_person_segment_for_segment(motion, seed) -> None:
+    """As the kicks: every segment of a realistic walk or run (three seeds each) gets the humanoid name
+    of the most proximal true segment its markers ride on, left and right included."""
+    take = make(realistic(seed=seed, frames=600, motion=motion, markerset="cmu41"))
+    res = pipeline.fit(take.markers, pipeline.make_params())
+    skel = res.motion.skeleton
+    naming = name_skeleton(skel, res.motion, "auto")
+    assert naming.humanoid, naming.note
+    want = []
+    for s in range(len(skel.names)):
+        parts = _true_parts(take, [skel.labels[m] for m in np.flatnonzero(skel.marker_segment == s)])
+        want.append(HUMANOID[min(set(parts), key=_depth)])
+    assert list(naming.names) == want
+
+
 def test_a_pair_of_skin_markers_joins_the_body_it_straddles(kick) -> None:
     """The two acromion markers (on the thorax, moved by the arms' skin motion) go with the thorax's
     markers, and the pelvis's four markers make one group."""
