@@ -482,11 +482,14 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
 
 #: A marker moves to another group when that group's moving frame holds it at least this many times
 #: tighter than its own group's frame does (rms scatter about its mean place, its own group's frame
-#: fitted without it). Distance stds hide a body's motion from a marker that lies near the axis of
-#: the motion; the frame does not. On real and realistic generated takes the best other frame holds
-#: a marker of a right group at most 1.35 times tighter than its own; the markers it moves held
-#: 1.8-7 times tighter (a back-waist marker put with the thorax in a walk whose lumbar joint hardly
-#: moves, an ankle marker put with a thigh-and-shank group).
+#: fitted without it), both as measured and beyond each frame's own fitting error. Distance stds hide
+#: a body's motion from a marker that lies near the axis of that motion; the frame does not. The moves
+#: made on the realistic generated takes and the real takes of the shared folders: held 2.2-3.9 times
+#: tighter (a back-waist marker that a walk whose lumbar joint hardly moves had put with the thorax,
+#: 2.2; an elbow marker put with the acromions, 3.9; malleolus and knee markers to the other segment
+#: of their joint, 2.2-2.8). A heel held 2.1 times tighter by its shank's frame, in a hip trial whose
+#: ankle hardly moves, stays: beyond the fitting error of its own frame (three forefoot markers, far
+#: from it) only 1.6 times.
 REFRAME_RATIO = 2.0
 #: A frame is fitted only to markers whose shape is not nearly in one line (second principal spread
 #: at least this fraction of the first).
@@ -540,10 +543,10 @@ def _frame_scatters(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np
     error (:func:`_beyond_fit`).
 
     Returns both (2, M) for every marker in that frame, and both (2, len(idx)) for each member in the
-    frame of the other members (NaN for a group of three: two markers leave the frame's turn about their line free). The
-    frames are fitted on the frames that see all of ``idx`` (at most ``SPLIT_FRAMES`` of them, evenly
-    spread) to the group's shape (generalised Procrustes); NaN for a marker seen on fewer than
-    ``SPLIT_MIN_FRAMES`` of them and for frames of markers nearly in one line.
+    frame of the other members (NaN for a group of three: two markers leave the frame's turn about their
+    line free). The frames are fitted on the frames that see all of ``idx`` (at most ``SPLIT_FRAMES`` of
+    them, evenly spread) to the group's shape (generalised Procrustes); NaN for a marker seen on fewer
+    than ``SPLIT_MIN_FRAMES`` of them and for frames of markers nearly in one line.
     """
     M, n = points.shape[1], idx.size
     whole, loo = np.full((2, M), np.nan), np.full((2, n), np.nan)
@@ -575,13 +578,13 @@ def reassign_by_frame(points: np.ndarray, labels: np.ndarray,
     """Move each marker to the group whose moving frame holds it clearly tighter than its own group's.
 
     For every marker of a group of four or more, how far it moves in the frame of the rest of its group
-    (its scatter there beyond the frame's own fitting error) is compared with how far it moves in the
-    frame of every other group of three or more; where another holds it
-    ``ratio`` times tighter while its own group's other markers (their median) scatter in that frame at
-    least ``ratio`` times as much as it does (the two groups do move apart: where they hardly do, a
-    marker's place between them is arbitrary), the marker moves there ("reframed"). One move at a time,
-    the clearest first, the two groups' frames then fitted again. points : (K, M, 3) sampled frames,
-    NaN where unseen; labels : (M,). Returns the labels numbered by first marker and the moves.
+    is compared with how far it moves in the frame of every other group of three or more (both as
+    measured and beyond the frames' own fitting error). Where another holds it ``ratio`` times tighter
+    both ways, while its own group's other markers (their median) scatter in that frame at least
+    ``ratio`` times as much as it does (the two groups do move apart: where they hardly do, a marker's
+    place between them is arbitrary), the marker moves there ("reframed"). One move at a time, the
+    clearest first, the two groups' frames then fitted again. points : (K, M, 3) sampled frames, NaN
+    where unseen; labels : (M,). Returns the labels numbered by first marker and the moves.
     """
     lab = np.array(labels, dtype=int)
     M = lab.size
