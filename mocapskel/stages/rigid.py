@@ -533,15 +533,17 @@ def _relative_rotvecs(rel: np.ndarray) -> np.ndarray:
     return matrix_to_rotvec(np.swapaxes(project_to_so3(rel.sum(0)), 0, 1)[None] @ rel)
 
 
-def _hinge_direction(rel: np.ndarray, hinge_ratio: float, twist: np.ndarray | None = None) -> np.ndarray | None:
+def _hinge_direction(rel: np.ndarray, hinge_ratio: float, twist: np.ndarray | None = None,
+                     rv: np.ndarray | None = None) -> np.ndarray | None:
     """The axis the relative rotations ``rel`` (F, 3, 3) turn about when they turn about one (their
     spread about the second axis at most ``hinge_ratio`` of the first: a hinge); None otherwise.
 
     twist : the child's long axis (its rest-pose bone direction), or None: the rotations' part about
     it is left out (a limb segment of one or two markers along its bone hardly fixes its own twist,
     and a hinge turns across its bone, not about it).
+    rv : ``_relative_rotvecs(rel)`` when the caller has them.
     """
-    rv = _relative_rotvecs(rel)
+    rv = _relative_rotvecs(rel) if rv is None else rv
     if twist is not None:
         rv = rv - np.outer(rv @ twist, twist)
     _, sv, Vt = np.linalg.svd(rv, full_matrices=False)
@@ -873,12 +875,13 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
             continue
         if held is None:
             held = _hinge_axes(skel, R, hinge_ratio)
+        rv = _relative_rotvecs(rel)
         ax = held.get(int(c))
         if ax is None:
-            ax = _hinge_direction(rel, hinge_ratio)
+            ax = _hinge_direction(rel, hinge_ratio, rv=rv)
         if ax is None:
             continue
-        sv = np.linalg.svd(_relative_rotvecs(rel), compute_uv=False)
+        sv = np.linalg.svd(rv, compute_uv=False)
         if not sv[1] > 0 or sv[2] > LEAF_PLANAR * sv[1]:
             continue  # it turns alike about every axis across the main one: exercised in every direction
         shift = float(np.mean((pos[mk] - J) @ ax))
