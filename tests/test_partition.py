@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocapskel.solvers.partition import best_split, rigid_rms, scatter_in_frame
+from mocapskel.solvers.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
 from mocapskel.solvers.rotations import rotvec_to_matrix
 from mocapskel.stages import segment
 
@@ -156,7 +156,7 @@ def test_a_frames_own_fitting_error_is_not_taken_for_motion():
     R = rotvec_to_matrix(np.deg2rad(30.0) * np.column_stack([np.sin(t), np.cos(2 * t), 0.5 * np.sin(3 * t)]))
     P = np.einsum("kij,nj->kni", R, shape) + rng.normal(0.0, 1.0, (K, 5, 3))
     P[:, 4] += np.einsum("kij,kj->ki", R, 8.0 * np.column_stack([np.sin(3 * t), np.cos(5 * t), np.sin(7 * t)]) / np.sqrt(1.5))
-    whole, loo = segment._frame_scatters(P, np.array([0, 1, 2]))
+    whole, loo = frame_scatters(P, np.array([0, 1, 2]), segment.SPLIT_FRAMES, segment.SPLIT_MIN_FRAMES)
     raw, beyond = whole
     assert np.isnan(loo).all()  # three markers: no frame without one of them
     assert raw[3] > 10.0 and beyond[3] < 0.5 * raw[3]  # rigid: the scatter is mostly the frame's turn (150 frames)

@@ -25,8 +25,7 @@ import numpy as np
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
-from ..solvers.partition import best_split, rigid_rms, scatter_in_frame
-from ..solvers.rigid import procrustes_shape, shape_poses
+from ..solvers.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
 VERSION = 9
@@ -491,88 +490,6 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
 #: ankle hardly moves, stays: beyond the fitting error of its own frame (three forefoot markers, far
 #: from it) only 1.6 times.
 REFRAME_RATIO = 2.0
-#: A frame is fitted only to markers whose shape is not nearly in one line (second principal spread
-#: at least this fraction of the first).
-REFRAME_LINE = 0.1
-
-
-def _line(shape: np.ndarray) -> bool:
-    """Whether the points ``shape`` (n, 3) lie nearly in one line (see ``REFRAME_LINE``)."""
-    sv = np.linalg.svd(shape - shape.mean(0), compute_uv=False)
-    return not sv[1] >= REFRAME_LINE * sv[0]
-
-
-def _in_frames(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each marker's rms scatter about its mean place in the moving frames (R, t), and that mean place:
-    X (..., K, n, 3), R (..., K, 3, 3), t (..., K, 3); NaN where seen on fewer than ``SPLIT_MIN_FRAMES``
-    frames."""
-    Q = np.einsum("...kni,...kij->...knj", X - t[..., None, :], R)  # R^T (x - t): back into the body
-    seen = np.isfinite(Q).all(-1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        mean = np.nanmean(Q, axis=-3)
-        d2 = ((Q - mean[..., None, :, :]) ** 2).sum(-1)
-        s = np.sqrt(np.nanmean(np.where(seen, d2, np.nan), axis=-2))
-    return np.where(seen.sum(-2) >= SPLIT_MIN_FRAMES, s, np.nan), mean
-
-
-def _beyond_fit(s: np.ndarray, place: np.ndarray, shape: np.ndarray, own: np.ndarray) -> np.ndarray:
-    """How far markers move in a frame beyond what the frame's own fitting error explains.
-
-    s : (m,) the markers' rms scatter in the frame; place : (m, 3) their mean places in it; shape : (n, 3)
-    the frame's markers, own : (n,) their scatters. A frame fitted to n markers of noise sigma (per
-    coordinate; their residual sum of squares has 3n - 6 degrees of freedom) carries a point at p from
-    their centroid with error variance 3 sigma^2 / n + sigma^2 tr([p]x J^-1 [p]x^T), J the markers'
-    inertia about the centroid: far from a small group's markers the frame's own turn moves a point
-    that rides on it (a heel in the frame of three forefoot markers). Returns sqrt(max(s^2 - that, 0)).
-    """
-    n = shape.shape[0]
-    sig2 = float(np.nansum(own**2)) / (3 * n - 6) if n > 2 else np.nan
-    r = shape - shape.mean(0)
-    J = (r**2).sum() * np.eye(3) - r.T @ r
-    p = place - shape.mean(0)
-    # tr([p]x Ji [p]x^T) = |p|^2 tr(Ji) - p^T Ji p
-    Ji = np.linalg.pinv(J)
-    lever = (p**2).sum(-1) * np.trace(Ji) - np.einsum("mi,ij,mj->m", p, Ji, p)
-    return np.sqrt(np.maximum(s**2 - sig2 * (3.0 / n + lever), 0.0))
-
-
-def _frame_scatters(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How far markers move in the moving frame of the markers ``idx`` (three or more) of ``points``
-    (K, M, 3): their rms scatter about their mean place in it, and that beyond the frame's own fitting
-    error (:func:`_beyond_fit`).
-
-    Returns both (2, M) for every marker in that frame, and both (2, len(idx)) for each member in the
-    frame of the other members (NaN for a group of three: two markers leave the frame's turn about their
-    line free). The frames are fitted on the frames that see all of ``idx`` (at most ``SPLIT_FRAMES`` of
-    them, evenly spread) to the group's shape (generalised Procrustes); NaN for a marker seen on fewer
-    than ``SPLIT_MIN_FRAMES`` of them and for frames of markers nearly in one line.
-    """
-    M, n = points.shape[1], idx.size
-    whole, loo = np.full((2, M), np.nan), np.full((2, n), np.nan)
-    f = np.flatnonzero(np.isfinite(points[:, idx]).all(-1).all(-1))
-    if f.size < SPLIT_MIN_FRAMES:
-        return whole, loo
-    X = points[f[np.unique(np.linspace(0, f.size - 1, min(SPLIT_FRAMES, f.size)).round().astype(int))]]
-    K = X.shape[0]
-    shape = procrustes_shape(X[:, idx], ref_frame=0)[0]
-    if _line(shape):
-        return whole, loo
-    R, t = shape_poses(shape, X[:, idx])
-    s, place = _in_frames(X, R, t)
-    whole = np.stack([s, _beyond_fit(s, place, shape, s[idx])])
-    if n >= 4:
-        obs = np.repeat(X[None][:, :, idx], n, axis=0)  # (n, K, n, 3): copy i without member i
-        obs[np.arange(n), :, np.arange(n)] = np.nan
-        R, t = shape_poses(shape, obs.reshape(n * K, n, 3))
-        s, place = _in_frames(X[:, idx], R.reshape(n, K, 3, 3), t.reshape(n, K, 3))
-        for i in range(n):
-            rest = np.delete(np.arange(n), i)
-            if not _line(shape[rest]):
-                loo[:, i] = s[i, i], _beyond_fit(s[i, i:i + 1], place[i, i:i + 1], shape[rest], s[i, rest])[0]
-    return whole, loo
-
-
 def reassign_by_frame(points: np.ndarray, labels: np.ndarray,
                       ratio: float = REFRAME_RATIO) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Move each marker to the group whose moving frame holds it clearly tighter than its own group's.
@@ -594,7 +511,7 @@ def reassign_by_frame(points: np.ndarray, labels: np.ndarray,
         groups = [np.flatnonzero(lab == g) for g in range(lab.max() + 1)]
         for idx in groups:
             if idx.size >= 3 and tuple(idx) not in cache:
-                cache[tuple(idx)] = _frame_scatters(points, idx)
+                cache[tuple(idx)] = frame_scatters(points, idx, SPLIT_FRAMES, SPLIT_MIN_FRAMES)
         best = None
         for g, idx in enumerate(groups):
             if idx.size < 4:
