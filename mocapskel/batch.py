@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, pipeline
-from .errors import InputError, MocapskelError, UsageError
+from .errors import InputError, MocapskelError, UsageError, interrupt_behind
 from .io.atomic import AtomicOutputs, atomic_open
 from .pipeline import ReadOptions
 
@@ -348,6 +348,8 @@ def fit_take(task: TakeTask) -> TakeResult:
         return TakeResult(task.name, "failed", time.perf_counter() - t0,
                           error=f"{task.input}: out of memory — try a shorter take or fewer markers", exit_code=1)
     except Exception as e:  # a bug: the take fails, the batch goes on
+        if (stop := interrupt_behind(e)) is not None:
+            raise stop from None  # a Ctrl-C or SIGTERM that Python wrapped: the batch stops, as it would unwrapped
         return TakeResult(task.name, "failed", time.perf_counter() - t0, exit_code=1,
                           error=_one_line(f"{task.input}: unexpected {type(e).__name__}: {e} — "
                                           "run 'mocapskel fit' on it with -v for details and report it"))

@@ -149,6 +149,47 @@ def test_interrupted_batch_leaves_no_partial_output(small, tmp_path, monkeypatch
     read_bvh(out / "chain.bvh")
 
 
+@pytest.mark.parametrize("stop, code, word", [("Interrupted", 130, "interrupted"), ("Terminated", 143, "terminated")])
+def test_a_signal_that_python_wrapped_in_another_error_stops_the_batch(small, tmp_path, monkeypatch, stop, code, word):
+    """A Ctrl-C or SIGTERM that Python 3.11 wrapped in a RuntimeError (raised while a dataclass was created
+    by a lazy import) stops the batch with its code, as it would unwrapped: it is not a failed take. An
+    unrelated RuntimeError is still one failed take, and the batch goes on."""
+    from mocapskel import pipeline
+    from mocapskel.cli import main as cli_main
+
+    takes, _, _, _ = small
+    real = pipeline.fit
+    calls = []
+
+    def fit_then_wrapped_signal(path, *args, **kwargs):
+        calls.append(Path(path).name)
+        if len(calls) == 2:
+            try:
+                raise getattr(cli_main, stop)()
+            except BaseException as e:
+                raise RuntimeError("Error calling __set_name__ on 'Field' instance 'computed' in 'RawTake'") from e
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "fit", fit_then_wrapped_signal)
+    out = tmp_path / "out"
+    rc, _, err = run("batch", takes, "-o", out, "--jobs", 1, "--no-cache")
+    assert rc == code and word in err and "unexpected" not in err
+    assert calls == ["chain.trc", "link_a.trc"]
+    assert sorted(p.name for p in out.iterdir()) == ["chain.bvh", "chain.json"]  # no summary, no temporary file
+
+    def fit_then_bug(path, *args, **kwargs):
+        if Path(path).name == "link_a.trc":
+            raise RuntimeError("something else")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "fit", fit_then_bug)
+    out2 = tmp_path / "out2"
+    rc, _, _ = run("batch", takes, "-o", out2, "--jobs", 1, "--no-cache")
+    rows = _rows(out2)
+    assert rows["link_a"]["status"] == "failed" and "unexpected RuntimeError: something else" in rows["link_a"]["error"]
+    assert rows["chain"]["status"] == "ok"
+
+
 def test_inputs_files_folders_globs(small, tmp_path):
     takes, _, _, _ = small
     assert [p.name for p in batch.collect_inputs([takes])] == ["chain.trc", "link_a.trc", "link_b.c3d", "x.c3d"]

@@ -16,7 +16,7 @@ import traceback
 
 import click
 
-from ..errors import MocapskelError
+from ..errors import MocapskelError, interrupt_behind
 
 log = logging.getLogger("mocapskel")
 
@@ -134,10 +134,10 @@ class MocapskelGroup(click.Group):
             where = f"{e.filename}: " if e.filename else ""
             _fail(f"{where}{e.strerror or e} — check free space and permissions (-v shows where it happened)", 1)
         except Exception as e:  # anything unexpected
-            stop = _signal_behind(e)
+            stop = interrupt_behind(e)
             if isinstance(stop, Terminated):
                 _fail("terminated — no output was written", 128 + signal.SIGTERM)
-            elif stop is not None:
+            elif isinstance(stop, (KeyboardInterrupt, Interrupted)):
                 _fail("interrupted — no output was written", 130)
             if _State.verbose:
                 traceback.print_exc()
@@ -146,19 +146,6 @@ class MocapskelGroup(click.Group):
             for sig, handler in old.items():  # (the console entry's handlers: a signal now exits at once)
                 signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         sys.exit(0)
-
-
-def _signal_behind(e: BaseException) -> BaseException | None:
-    """The Ctrl-C or SIGTERM that an exception wraps, if any: Python 3.11 turns an exception raised while a
-    class is created (a dataclass's field, during a lazy import) into a RuntimeError caused by it, and a
-    signal that lands then would otherwise end as an unexpected error (exit 1) instead of 130 / 143."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, (KeyboardInterrupt, Interrupted, Terminated)):
-            return e
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return None
 
 
 def _fail(message: str, code: int) -> None:
