@@ -33,7 +33,10 @@ the result against the take itself, with no template:
                     longer on one side by more than a fifth: people's left and
                     right long bones differ by a few per cent, so one side has a
                     joint the markers did not fix (a hip a walk moves too little
-                    to place along the thigh);
+                    to place along the thigh); in a skeleton not recognised as a
+                    person (a lower-body gait set), the same for like limbs: two
+                    children of one segment that are chains of the same length,
+                    two segments or more, compared segment for segment;
 - ``not_converged`` joints whose centre fit stopped before converging.
 
 Every failing check is one :class:`Finding`: which check, the joint or segment
@@ -253,32 +256,63 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
 
 
 def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
-    """The bones of a person's left and right limbs that differ by more than ``tol`` (a fraction)."""
+    """The bones of a person's left and right limbs that differ by more than ``tol`` (a fraction); in a
+    skeleton not recognised as a person (a lower-body gait set), those of like limbs: two children of
+    one segment whose subtrees have the same shape, each a chain of two segments or more (two legs on
+    a pelvis), compared segment for segment down the chain."""
     from .naming import recognise
 
     sk = motion.skeleton
-    naming = recognise(sk, motion)
-    if isinstance(naming, str):
-        return []  # not a person: no left and right to compare
     parent = np.asarray(sk.parent)
     off = np.linalg.norm(sk.offset, axis=1)
-    role = {n: s for s, n in enumerate(naming.names)}
+    naming = recognise(sk, motion)
+    pairs = []  # (left segment, right segment, what they are)
+    if isinstance(naming, str):  # not a person: like limbs by the tree's shape alone
+        for a, b in _like_chains(parent):
+            for k, (s_a, s_b) in enumerate(zip(_chain(parent, a), _chain(parent, b))):
+                nth = ("first", "second", "third", "fourth")[k] if k < 4 else f"{k + 1}th"
+                pairs.append((s_a, s_b, f"like limbs' {nth} segments", "like"))
+    else:
+        role = {n: s for s, n in enumerate(naming.names)}
+        for left, s_l in role.items():
+            if left.startswith("Left") and "Right" + left[4:] in role:
+                pairs.append((s_l, role["Right" + left[4:]], f"left and right {left[4:]}", "person"))
     out = []
-    for left, s_l in role.items():
-        if not left.startswith("Left") or "Right" + left[4:] not in role:
-            continue
-        s_r = role["Right" + left[4:]]
+    for s_l, s_r, part, kind in pairs:
         kids = [np.flatnonzero(parent == s) for s in (s_l, s_r)]
         if any(k.size != 1 for k in kids):
             continue  # a limb's end: no bone to the next joint
         la, lb = float(off[kids[0][0]]), float(off[kids[1][0]])
         if not (la > 0 and lb > 0) or max(la, lb) <= (1.0 + tol) * min(la, lb):
             continue
-        part = left[4:]
+        who = "a person's differ by a few per cent" if kind == "person" else (
+            "two legs or two arms differ by a few per cent; another machine's like limbs may not")
         out.append(Finding("limb_asymmetry", f"{sk.names[s_l]}/{sk.names[s_r]}",
-                           f"the left and right {part} ({sk.names[s_l]}, {sk.names[s_r]}) are {la:.0f} and {lb:.0f} mm long "
-                           f"({100 * (max(la, lb) / min(la, lb) - 1):.0f} % apart; a person's differ by a few per cent) — a "
+                           f"the {part} ({sk.names[s_l]}, {sk.names[s_r]}) are {la:.0f} and {lb:.0f} mm long "
+                           f"({100 * (max(la, lb) / min(la, lb) - 1):.0f} % apart; {who}) — a "
                            "joint of the longer or the shorter is poorly determined (the take hardly moves it)"))
+    return out
+
+
+def _chain(parent: np.ndarray, s: int) -> list[int]:
+    """Segment ``s`` and its descendants down a chain (while each has one child)."""
+    out = [int(s)]
+    while (kids := np.flatnonzero(parent == out[-1])).size == 1:
+        out.append(int(kids[0]))
+    return out
+
+
+def _like_chains(parent: np.ndarray) -> list[tuple[int, int]]:
+    """Pairs of children of one segment that are chains of the same length, two segments or more."""
+    out = []
+    for p in range(len(parent)):
+        kids = [int(k) for k in np.flatnonzero(parent == p)]
+        chains = {c: _chain(parent, c) for c in kids}
+        for i, a in enumerate(kids):
+            for b in kids[i + 1:]:
+                ca, cb = chains[a], chains[b]
+                if len(ca) == len(cb) >= 2 and all(not (parent == x).any() for x in (ca[-1], cb[-1])):
+                    out.append((a, b))
     return out
 
 

@@ -231,3 +231,30 @@ def test_a_hip_slid_along_the_thigh_warns_of_asymmetric_limbs(human_fit) -> None
     assert "left and right UpLeg" in msg and "30 % apart" in msg
     # the untouched fit has none, and a non-person (a chain) is not compared
     assert not _names(checks.run_checks(motion, markers_of(motion).points), "limb_asymmetry")
+
+
+def test_like_limbs_of_a_skeleton_not_taken_for_a_person_are_compared_too(human_fit, monkeypatch) -> None:
+    """A lower-body gait set is not taken for a person (no head, no arms), yet its two legs are like limbs:
+    two chains of the same length on the pelvis (a generated gait walk's right thigh came out 324 mm against
+    the left's 442, its thigh marker alone on its segment, and nothing said so). The same hip slid 30 % of the
+    thigh, in this person's skeleton looked at as not a person: said, naming both first segments of the two
+    legs; the untouched fit has none."""
+    from mocapskel import naming as naming_mod
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    role = {n: s for s, n in enumerate(naming_mod.recognise(sk, motion).names)}
+    hip, knee, right = role["LeftUpLeg"], role["LeftLeg"], role["RightUpLeg"]
+    monkeypatch.setattr(naming_mod, "recognise", lambda *a, **k: "not recognised as a person: (test)")
+    assert not _names(checks.run_checks(motion, markers_of(motion).points), "limb_asymmetry")
+    d = 0.3 * (sk.origin[hip] - sk.origin[knee])
+    origin = sk.origin.copy()
+    origin[hip] += d
+    local = sk.marker_local.copy()
+    local[sk.marker_segment == hip] -= d
+    bad = replace(motion, skeleton=replace(sk, origin=origin, marker_local=local))
+    found = checks.run_checks(bad, markers_of(motion).points)
+    assert _names(found, "limb_asymmetry") == {f"{sk.names[min(hip, right)]}/{sk.names[max(hip, right)]}"}
+    msg = next(f.message for f in found if f.check == "limb_asymmetry")
+    assert "like limbs' first segments" in msg and "30 % apart" in msg
