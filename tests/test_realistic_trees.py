@@ -170,8 +170,9 @@ def test_a_back_waist_marker_goes_with_the_pelvis_when_the_trunk_hardly_turns_on
     assert old["RBWT"] == old["T10"] != old["LFWT"]
 
 
-def _lumbar_error(take, joints) -> tuple[str, float]:
-    """The joints stage's method and rms error (mm) for the joint between the pelvis's group and the thorax's."""
+def _lumbar_error(take, joints) -> tuple[str, float, str]:
+    """The joints stage's method and rms error (mm) for the joint between the pelvis's group and the thorax's,
+    and why the stage says it chose that."""
     seg = joints.topology.segments
     group = dict(zip(take.markers.labels, seg.group.tolist()))
     pair = {group["LFWT"], group["T10"]}
@@ -179,7 +180,7 @@ def _lumbar_error(take, joints) -> tuple[str, float]:
     t = take.truth
     te = list(t.joint_child).index(list(t.segment_names).index("Torso"))
     err = np.linalg.norm(joints.centres[:, e] - t.joints[:, te], axis=1)
-    return joints.method[e], float(np.sqrt(np.nanmean(err ** 2)))
+    return joints.method[e], float(np.sqrt(np.nanmean(err ** 2))), joints.info["per_joint"][e]["why"]
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -193,9 +194,11 @@ def test_a_trunk_that_twists_more_than_it_bends_keeps_the_lumbar_joint_the_data_
 
     take = make(realistic(seed=seed, frames=600, motion="run", markerset="cmu41"))
     topo = pipeline.run_until(take.markers, "topology", pipeline.make_params()).artifact
-    method, err = _lumbar_error(take, joints_stage.run(topo))
+    method, err, why = _lumbar_error(take, joints_stage.run(topo))
     assert method == "score" and err < 60.0, (method, err)
+    assert "axis along the chain" in why  # the report says why
     if seed == 1:  # the placement on the axis is what the rule keeps away
         monkeypatch.setattr(joints_stage, "loose_along_axis", lambda fit, on_axis: on_axis.ok)
-        method, err = _lumbar_error(take, joints_stage.run(topo))
+        method, err, why = _lumbar_error(take, joints_stage.run(topo))
         assert method == "score-hinge" and err > 150.0, (method, err)
+        assert "nearest the markers" in why

@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 14
+VERSION = 15
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -116,20 +116,24 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 on_axis = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=1.0)
                 if loose_along_axis(fit, on_axis):
                     fit = on_axis
+                else:
+                    return fit, centre_from_either_side(fit, poses[a], poses[b]), True
             if not fit.ok:
                 return None
-            return fit, centre_from_either_side(fit, poses[a], poses[b])
+            return fit, centre_from_either_side(fit, poses[a], poses[b]), False
 
         for e, got in enumerate(run_blocks(score_edge, range(E))):
             if got is None:
                 continue
-            fit, centres[:, e] = got
+            fit, centres[:, e], along_chain = got
             if fit.hinge:
                 hinges[e] = (fit, poses[edges[e][0]][0])
             methods[e] = "score-hinge" if fit.hinge else "score"
             per_joint[e]["why"] = (
                 "both segments have 3+ markers: SCoRE linear least squares"
                 + ("; hinge-like motion, centre on the axis nearest the markers" if fit.hinge else "")
+                + ("; hinge-like motion about an axis along the chain (the two segments' markers lie one after"
+                   " the other on it): the centre the data give" if along_chain else "")
             )
             per_joint[e]["hinge"] = bool(fit.hinge)
             done[e] = True
