@@ -3,6 +3,8 @@ angles, martial-arts kicks): marker groups, the tree and the humanoid names agai
 truth, and the segment-stage rules that make them (pairs of markers that are one body's skin)."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -56,13 +58,19 @@ def test_realistic_kicks_are_named_as_a_person_segment_for_segment(kick) -> None
     _assert_named_as_a_person(*kick)
 
 
+@functools.lru_cache(maxsize=None)
+def _fitted(motion: str, seed: int):
+    """A realistic cmu41 take (600 frames) and its fit, made once for the tests of this file that use it."""
+    take = make(realistic(seed=seed, frames=600, motion=motion, markerset="cmu41"))
+    return take, pipeline.fit(take.markers, pipeline.make_params())
+
+
 @pytest.mark.parametrize("motion", ["walk", "run"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_realistic_walks_and_runs_are_named_as_a_person_segment_for_segment(motion, seed) -> None:
     """As the kicks: every segment of a realistic walk or run (three seeds each) gets the humanoid name
     of the most proximal true segment its markers ride on, left and right included."""
-    take = make(realistic(seed=seed, frames=600, motion=motion, markerset="cmu41"))
-    _assert_named_as_a_person(take, pipeline.fit(take.markers, pipeline.make_params()))
+    _assert_named_as_a_person(*_fitted(motion, seed))
 
 
 def test_a_pair_of_skin_markers_joins_the_body_it_straddles(kick) -> None:
@@ -192,14 +200,14 @@ def test_a_trunk_that_twists_more_than_it_bends_keeps_the_lumbar_joint_the_data_
     that, put it 16-53 mm from the truth."""
     from mocapskel.stages import joints as joints_stage
 
-    take = make(realistic(seed=seed, frames=600, motion="run", markerset="cmu41"))
-    topo = pipeline.run_until(take.markers, "topology", pipeline.make_params()).artifact
-    method, err, why = _lumbar_error(take, joints_stage.run(topo))
+    take, res = _fitted("run", seed)
+    joints = res.motion.skeleton.joints
+    method, err, why = _lumbar_error(take, joints)
     assert method == "score" and err < 60.0, (method, err)
     assert "axis along the chain" in why  # the report says why
     if seed == 1:  # the placement on the axis is what the rule keeps away
         monkeypatch.setattr(joints_stage, "loose_along_axis", lambda fit, on_axis: on_axis.ok)
-        method, err, why = _lumbar_error(take, joints_stage.run(topo))
+        method, err, why = _lumbar_error(take, joints_stage.run(joints.topology))
         assert method == "score-hinge" and err > 150.0, (method, err)
         assert "nearest the markers" in why
 
@@ -211,8 +219,7 @@ def test_realistic_runs_joints_after_ik_against_the_truth(seed) -> None:
     47.3 and 29, 52, 14 mm; before the lumbar and neck were placed by the data, 70-77 and 165-217)."""
     from mocapskel import evaluate
 
-    take = make(realistic(seed=seed, frames=600, motion="run", markerset="cmu41"))
-    res = pipeline.fit(take.markers, pipeline.make_params())
+    take, res = _fitted("run", seed)
     sc = evaluate.score_motion(res.motion, take.truth)
     assert sc.joint_rms_mm < 55.0, sc.joint_rms_each
     assert sc.joint_rms_each["Torso"] < 60.0, sc.joint_rms_each

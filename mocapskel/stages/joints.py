@@ -110,6 +110,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 return None
             (R1, t1, ref1), (R2, t2, ref2) = poses[a], poses[b]
             fit = score(R1, t1, R2, t2, markers1=ref1, markers2=ref2, hinge_threshold=0.0)
+            along_chain = False  # hinge-like, but the data's centre kept (see loose_along_axis)
             if fit.ok and fit.axis_ratio < params.hinge_ratio and along_axis_sigma(fit) > params.hinge_min_sigma_mm:
                 # hinge-like: placed on the axis by the markers when the data leave the centre looser
                 # along the axis than that placement does
@@ -117,10 +118,10 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                 if loose_along_axis(fit, on_axis):
                     fit = on_axis
                 else:
-                    return fit, centre_from_either_side(fit, poses[a], poses[b]), True
+                    along_chain = True
             if not fit.ok:
                 return None
-            return fit, centre_from_either_side(fit, poses[a], poses[b]), False
+            return fit, centre_from_either_side(fit, poses[a], poses[b]), along_chain
 
         for e, got in enumerate(run_blocks(score_edge, range(E))):
             if got is None:

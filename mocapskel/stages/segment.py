@@ -490,6 +490,8 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
 #: ankle hardly moves, stays: beyond the fitting error of its own frame (three forefoot markers, far
 #: from it) only 1.6 times.
 REFRAME_RATIO = 2.0
+
+
 def reassign_by_frame(points: np.ndarray, labels: np.ndarray,
                       ratio: float = REFRAME_RATIO) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Move each marker to the group whose moving frame holds it clearly tighter than its own group's.
