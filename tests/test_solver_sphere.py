@@ -338,3 +338,60 @@ def test_moments_of_several_markers_at_once_equal_marker_by_marker():
     gaps = sphere._moments([Xg[:, p] for p in range(4)])
     assert gaps.n[1] < gaps.n[0]
     np.testing.assert_allclose(gaps.M2[[0, 2, 3]], batch.M2[[0, 2, 3]], rtol=1e-12)
+
+
+def test_brentq_gives_scipys_root_to_the_last_bit():
+    """The port of Brent's method finds SciPy's root exactly (SciPy's own ``brentq`` is the reference),
+    on smooth functions of several kinds and tolerances, including the ones the noise estimate uses."""
+    from scipy.optimize import brentq as scipy_brentq
+
+    from mocapskel.solvers.sphere import brentq
+
+    rng = np.random.default_rng(7)
+    checked = 0
+    for i in range(3000):
+        c = rng.normal(size=6)
+        f = [lambda x: np.polyval(c, x), lambda x: np.sin(3 * c[0] * x) + c[1] * x - c[2],
+             lambda x: np.tanh(5 * (x - c[0])) + 1e-3 * c[1]][i % 3]
+        a, b = sorted(rng.uniform(-3, 3, 2))
+        if not np.sign(f(a)) * np.sign(f(b)) < 0:
+            continue
+        xtol, rtol = [(1e-12, 4 * np.finfo(float).eps), (1e-15 * abs(b), 1e-15), (1e-6, 1e-10)][i % 3]
+        assert brentq(f, a, b, xtol=xtol, rtol=rtol, maxiter=200) == scipy_brentq(f, a, b, xtol=xtol, rtol=rtol, maxiter=200)
+        checked += 1
+    assert checked > 1000
+
+
+def test_brentq_refuses_what_scipy_refuses():
+    from mocapskel.solvers.sphere import brentq
+
+    with pytest.raises(ValueError, match="different signs"):
+        brentq(lambda x: x * x + 1.0, -1.0, 1.0, xtol=1e-12, rtol=1e-15, maxiter=100)
+    with pytest.raises(ValueError, match="NaN"):
+        brentq(lambda x: np.nan if x > 0.1 else x - 0.5, 0.0, 1.0, xtol=1e-12, rtol=1e-15, maxiter=100)
+    with pytest.raises(RuntimeError, match="no convergence"):
+        brentq(lambda x: np.exp(x) - 1.5, 0.0, 1.0, xtol=1e-300, rtol=4 * np.finfo(float).eps, maxiter=2)
+    assert brentq(lambda x: x, 0.0, 1.0, xtol=1e-12, rtol=1e-15, maxiter=5) == 0.0
+
+
+def test_a_fit_does_not_import_scipy_optimize(tmp_path):
+    """Importing ``scipy.optimize`` costs more than half a second; a fit of a take whose joints use the
+    sphere fit (a one-marker segment: its noise estimate is Brent's root) does without it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, mocapskel\n"
+        "from mocapskel import pipeline\n"
+        "from mocapskel.solvers import sphere\n"
+        "from mocapskel.synth.presets import make, realistic\n"
+        "calls = []\n"
+        "plain = sphere.brentq\n"
+        "sphere.brentq = lambda *a, **k: calls.append(1) or plain(*a, **k)\n"
+        "take = make(realistic(seed=1, frames=240, motion='walk', markerset='cmu41'))\n"
+        "pipeline.fit(take.markers, pipeline.make_params(up='z', units='mm'))\n"
+        "print(len(calls), 'scipy.optimize' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path).stdout.split()
+    assert int(out[0]) > 0  # the root was needed
+    assert out[1] == "False"

@@ -67,6 +67,7 @@ variance that makes ``C - Sigma`` indefinite gives ``ok=False``.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -347,9 +348,62 @@ def _estimate_s(m: _Moments, ref: np.ndarray, w: np.ndarray, s_hi: float) -> flo
     fhi = _secular(hi, m, ref, w, V, tr)
     if not fhi < 0:
         return None
-    from scipy.optimize import brentq  # here: importing scipy.optimize costs a tenth of a second
+    return brentq(lambda s: _secular(s, m, ref, w, V, tr), 0.0, hi, xtol=1e-15 * hi, rtol=1e-15, maxiter=200)
 
-    return float(brentq(_secular, 0.0, hi, args=(m, ref, w, V, tr), xtol=1e-15 * hi, rtol=1e-15, maxiter=200))
+
+def brentq(f, a: float, b: float, *, xtol: float, rtol: float, maxiter: int) -> float:
+    """A root of ``f`` in [a, b] (``f(a)`` and ``f(b)`` of opposite signs) by Brent's method.
+
+    The algorithm of ``scipy.optimize.brentq`` (Brent 1973, in the form of SciPy's C code: inverse
+    quadratic extrapolation or secant steps while they shrink the bracket fast enough, bisection
+    otherwise), step for step, so that the root is the same to the last bit; here because importing
+    ``scipy.optimize`` costs more than half a second of every fit. Stops when the bracket is narrower
+    than ``xtol + rtol |x|`` or ``f`` is exactly 0; raises RuntimeError after ``maxiter`` steps and
+    ValueError when the signs at the ends agree or ``f`` gives NaN.
+    """
+    def call(x: float) -> float:
+        v = float(f(x))
+        if v != v:
+            raise ValueError(f"the function is NaN at {x!r}")
+        return v
+
+    xpre, xcur = float(a), float(b)
+    fpre, fcur = call(xpre), call(xcur)
+    if fpre == 0:
+        return xpre
+    if fcur == 0:
+        return xcur
+    if math.copysign(1.0, fpre) == math.copysign(1.0, fcur):
+        raise ValueError("f(a) and f(b) must have different signs")
+    xblk = fblk = spre = scur = 0.0
+    for _ in range(maxiter):
+        if fpre != 0 and fcur != 0 and math.copysign(1.0, fpre) != math.copysign(1.0, fcur):
+            xblk, fblk = xpre, fpre
+            spre = scur = xcur - xpre
+        if abs(fblk) < abs(fcur):
+            xpre, xcur, xblk = xcur, xblk, xcur
+            fpre, fcur, fblk = fcur, fblk, fcur
+        delta = (xtol + rtol * abs(xcur)) / 2
+        sbis = (xblk - xcur) / 2
+        if fcur == 0 or abs(sbis) < delta:
+            return xcur
+        if abs(spre) > delta and abs(fcur) < abs(fpre):
+            if xpre == xblk:  # interpolate
+                stry = -fcur * (xcur - xpre) / (fcur - fpre)
+            else:  # extrapolate
+                dpre = (fpre - fcur) / (xpre - xcur)
+                dblk = (fblk - fcur) / (xblk - xcur)
+                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
+            if 2 * abs(stry) < min(abs(spre), 3 * abs(sbis) - delta):  # a good short step
+                spre, scur = scur, stry
+            else:  # bisect
+                spre = scur = sbis
+        else:  # bisect
+            spre = scur = sbis
+        xpre, fpre = xcur, fcur
+        xcur += scur if abs(scur) > delta else (delta if sbis > 0 else -delta)
+        fcur = call(xcur)
+    raise RuntimeError(f"no convergence after {maxiter} iterations")
 
 
 def _alg_rms(m: _Moments, c: np.ndarray, r2: np.ndarray) -> float:
