@@ -369,3 +369,44 @@ def test_qcp_columns_agree_with_the_eigenvector():
     redo = np.flatnonzero(apart & ~col0)
     if redo.size:
         np.testing.assert_allclose(rigid._redo_rotations(Ht[:, redo], lam[redo]), R_svd[redo], atol=1e-10)
+
+
+def test_hull_planes_are_qhulls():
+    """The hull's facet planes give Qhull's distances beyond the hull (SciPy's ConvexHull is the
+    reference) on point sets of several kinds: random, many points on the hull, rounded coordinates
+    with ties and coplanar facets."""
+    from scipy.spatial import ConvexHull
+
+    from mocapskel.solvers.rigid import beyond_hull, hull_planes
+
+    rng = np.random.default_rng(3)
+    for i in range(400):
+        k = int(rng.integers(5, 120))
+        if i % 3 == 0:
+            P = rng.normal(size=(k, 3)) * [300.0, 200.0, 800.0]
+        elif i % 3 == 1:
+            v = rng.normal(size=(k, 3))
+            P = 400.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
+        else:
+            c = rng.normal(size=(8, 3)) * 300.0
+            P = np.round(c[rng.integers(0, 8, k)] + rng.normal(size=(k, 3)) * 30.0)
+        Q = rng.normal(size=(40, 3)) * 600.0
+        eq = ConvexHull(P).equations
+        want = (Q @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+        np.testing.assert_allclose(beyond_hull(P, Q), want, rtol=0, atol=1e-8)
+        assert hull_planes(P) is not None
+
+
+def test_hull_of_flat_or_few_points_has_no_inside():
+    from mocapskel.solvers.rigid import beyond_hull, hull_planes
+
+    rng = np.random.default_rng(4)
+    flat = np.column_stack([rng.normal(size=(30, 2)) * 100.0, np.full(30, 5.0)])
+    line = np.outer(rng.normal(size=20), [1.0, 2.0, 3.0])
+    assert hull_planes(flat) is None and hull_planes(line) is None and hull_planes(np.ones((6, 3))) is None
+    assert np.all(beyond_hull(flat, np.zeros((2, 3))) == -np.inf)
+    assert np.all(beyond_hull(rng.normal(size=(4, 3)), np.zeros((1, 3))) == -np.inf)
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float) * 100.0
+    cube = np.vstack([cube, [[50.0, 50.0, 50.0]], [[np.nan, 0.0, 0.0]]])
+    np.testing.assert_allclose(beyond_hull(cube, [[50.0, 50.0, 50.0], [150.0, 50.0, 50.0], [50.0, 50.0, -30.0]]),
+                               [-50.0, 50.0, 30.0], atol=1e-9)

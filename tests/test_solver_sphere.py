@@ -375,23 +375,30 @@ def test_brentq_refuses_what_scipy_refuses():
 
 
 def test_a_fit_does_not_import_scipy_optimize(tmp_path):
-    """Importing ``scipy.optimize`` costs more than half a second; a fit of a take whose joints use the
-    sphere fit (a one-marker segment: its noise estimate is Brent's root) does without it."""
+    """Importing ``scipy.optimize`` or ``scipy.spatial`` costs a third of a second or more; a fit of a
+    take whose joints use the sphere fit (a one-marker segment: its noise estimate is Brent's root) and
+    whose refinement looks for joints outside the body's hull does without them."""
     import subprocess
     import sys
+    from dataclasses import replace
 
+    from mocapskel.io.markers import write_markers
+    from mocapskel.synth.presets import make, realistic
+
+    take = make(realistic(seed=1, frames=240, motion="walk", markerset="cmu41"))  # (the generator uses SciPy)
+    write_markers(tmp_path / "take.c3d", replace(take.markers, source="take.c3d"))
     code = (
         "import sys, mocapskel\n"
         "from mocapskel import pipeline\n"
         "from mocapskel.solvers import sphere\n"
-        "from mocapskel.synth.presets import make, realistic\n"
         "calls = []\n"
         "plain = sphere.brentq\n"
         "sphere.brentq = lambda *a, **k: calls.append(1) or plain(*a, **k)\n"
-        "take = make(realistic(seed=1, frames=240, motion='walk', markerset='cmu41'))\n"
-        "pipeline.fit(take.markers, pipeline.make_params(up='z', units='mm'))\n"
-        "print(len(calls), 'scipy.optimize' in sys.modules)\n"
+        "res = pipeline.fit('take.c3d', pipeline.make_params(up='z', units='mm'))\n"
+        "print(len(calls), res.report['refinement'].get('iterations', 0) > 0,"
+        " 'scipy.optimize' in sys.modules, 'scipy.spatial' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path).stdout.split()
     assert int(out[0]) > 0  # the root was needed
-    assert out[1] == "False"
+    assert out[1] == "True"  # the refinement ran (it looks for joints outside the hull)
+    assert out[2:] == ["False", "False"]
