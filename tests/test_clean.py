@@ -248,3 +248,33 @@ def test_rigid_verdict_without_partners_keeps_the_candidates():
     cand = np.zeros((F, 3), dtype=bool)
     cand[100:103, 0] = True
     np.testing.assert_array_equal(clean.rigid_verdict(pts, vis, cand, 100.0), cand)
+
+
+def test_neighbour_median_is_the_sorted_median_bit_for_bit():
+    """The jump test's median of the four neighbouring changes (a sorting network) gives what
+    ``np.sort`` gives (NaN last): the mean of the middle two of four seen, the middle one of three,
+    the mean of two, NaN with fewer; and the vector norms are ``np.linalg.norm``'s, bit for bit."""
+    from mocapskel.solvers.merge import _neighbour_median, _norm3
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.float32, np.float64):
+        dr = rng.normal(size=(300, 40, 3)).astype(dtype) * 10
+        dr[rng.random((300, 40)) < 0.3] = np.nan  # unseen changes, in runs and alone
+        dr[0] = np.nan
+        dr[50:60, :5] = np.nan
+        dr[rng.random((300, 40)) < 0.05] = 3.0  # ties
+        F = dr.shape[0]
+        nbs = np.full((4,) + dr.shape, np.nan, dtype=dtype)
+        for q, k in enumerate((-2, -1, 1, 2)):
+            if k < 0:
+                nbs[q, -k:] = dr[:k]
+            else:
+                nbs[q, :-k] = dr[k:]
+        nbs.sort(axis=0)
+        cnt = np.isfinite(nbs[:, ..., 0]).sum(0)[..., None]
+        want = np.where(cnt == 4, 0.5 * (nbs[1] + nbs[2]),
+                        np.where(cnt == 3, nbs[1], np.where(cnt == 2, 0.5 * (nbs[0] + nbs[1]), np.nan)))
+        got = _neighbour_median(dr)
+        assert got.dtype == dtype and got.shape == (F, 40, 3)
+        np.testing.assert_array_equal(got, want)  # NaN where NaN, every other value equal
+        assert np.array_equal(_norm3(dr), np.linalg.norm(dr, axis=-1), equal_nan=True)
