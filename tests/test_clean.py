@@ -254,7 +254,7 @@ def test_neighbour_median_is_the_sorted_median_bit_for_bit():
     """The jump test's median of the four neighbouring changes (a sorting network) gives what
     ``np.sort`` gives (NaN last): the mean of the middle two of four seen, the middle one of three,
     the mean of two, NaN with fewer; and the vector norms are ``np.linalg.norm``'s, bit for bit."""
-    from mocapskel.solvers.merge import _neighbour_median, _norm3
+    from mocapskel.solvers.merge import _neighbour_median, norm3
 
     rng = np.random.default_rng(5)
     for dtype in (np.float32, np.float64):
@@ -277,4 +277,4 @@ def test_neighbour_median_is_the_sorted_median_bit_for_bit():
         got = _neighbour_median(dr)
         assert got.dtype == dtype and got.shape == (F, 40, 3)
         np.testing.assert_array_equal(got, want)  # NaN where NaN, every other value equal
-        assert np.array_equal(_norm3(dr), np.linalg.norm(dr, axis=-1), equal_nan=True)
+        assert np.array_equal(norm3(dr), np.linalg.norm(dr, axis=-1), equal_nan=True)

@@ -50,6 +50,7 @@ __all__ = [
     "partners_of",
     "rigid_outliers",
     "rigid_steps",
+    "norm3",
     "rigid_jumps",
     "judged_by_partners",
     "runs_of",
@@ -302,7 +303,7 @@ def partners_of(
 # --------------------------------------------------------------------------- outliers
 
 
-def _norm3(v: np.ndarray) -> np.ndarray:
+def norm3(v: np.ndarray) -> np.ndarray:
     """``np.linalg.norm(v, axis=-1)`` for (..., 3) vectors, bit for bit, without the slow short-axis reduction."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     return np.sqrt((x * x + y * y) + z * z)
@@ -357,7 +358,7 @@ def rigid_outliers(
     step = max(1, _CHUNK_ENTRIES // max(pi.size, 1))
     for s0 in range(0, F, step):
         sl = slice(s0, min(F, s0 + step))
-        d = _norm3(np.take(points[sl], pi, axis=1) - np.take(points[sl], pj, axis=1))  # (g, P), NaN if either unseen
+        d = norm3(np.take(points[sl], pi, axis=1) - np.take(points[sl], pj, axis=1))  # (g, P), NaN if either unseen
         valid = np.isfinite(d)
         dev = np.abs(np.where(valid, d, 0.0) - mu)
         nv[sl] = valid.astype(np.float32) @ E
@@ -448,7 +449,7 @@ def rigid_steps(
     dr = np.full_like(r, np.nan)
     dr[1:] = r[1:] - r[:-1]  # dr[f]: from f - 1 to f
     nb = _neighbour_median(dr)
-    dev = _norm3(dr - nb)  # (F, P), NaN where it cannot be judged
+    dev = norm3(dr - nb)  # (F, P), NaN where it cannot be judged
     # The median predicts a steady turn; a fast turn that speeds up (a far link of a long chain
     # swinging at metres per second) departs from it by its acceleration. The cubic through the
     # changes 2 and 1 frames before and after, and the parabolas through the 3 changes before
@@ -459,13 +460,13 @@ def rigid_steps(
     pred = np.full_like(dr, np.nan)
     with np.errstate(invalid="ignore"):
         pred[2:-2] = (4.0 * (dr[1:-3] + dr[3:-1]) - (dr[:-4] + dr[4:])) / 6.0
-        dev = np.fmin(dev, _norm3(dr - pred))
+        dev = np.fmin(dev, norm3(dr - pred))
         pred[:] = np.nan
         pred[:-3] = 3.0 * (dr[1:-2] - dr[2:-1]) + dr[3:]
-        dev = np.fmin(dev, _norm3(dr - pred))
+        dev = np.fmin(dev, norm3(dr - pred))
         pred[:] = np.nan
         pred[3:] = 3.0 * (dr[2:-1] - dr[1:-2]) + dr[:-3]
-        dev = np.fmin(dev, _norm3(dr - pred))
+        dev = np.fmin(dev, norm3(dr - pred))
     del pred
     ok = np.isfinite(dev)
     scale = np.zeros(pi.size)

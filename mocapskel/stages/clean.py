@@ -21,6 +21,7 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
+from ..solvers.merge import norm3
 
 VERSION = 3
 
@@ -61,12 +62,6 @@ def _visible(points: np.ndarray) -> np.ndarray:
     (``np.isfinite(points).all(axis=2)``) is several times slower.
     """
     return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
-
-
-def _norm3(v: np.ndarray) -> np.ndarray:
-    """``np.linalg.norm(v, axis=-1)`` for (..., 3) vectors, bit for bit, without the slow short-axis reduction."""
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    return np.sqrt((x * x + y * y) + z * z)
 
 
 def _window_any(mask: np.ndarray, before: int, after: int) -> np.ndarray:
@@ -180,7 +175,7 @@ def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params
         src = np.take(hold, np.clip(f[:, None] + offs, 0, F - 1) * M + m[:, None])  # (K, w) frames
         win = np.take(flat, src * M + m[:, None], axis=0)  # (K, w, 3), every sample seen
         med = np.partition(win, h, axis=1)[:, h]  # the median of an odd window
-        dev[k : k + 200_000] = _norm3(flat[f * M + m] - med)
+        dev[k : k + 200_000] = norm3(flat[f * M + m] - med)
     del hold
     # the MAD over the sampled frames only (rows never sampled hold nothing)
     is_s = sampled[fi, mi]
