@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import REPO, table
+from bench.common import REPO, compile_package, table
 
 REALDATA = REPO.parent / "shared" / "realdata"
 SLOWEST = ("cmu/135_02.c3d", "joint-localization/fullbody_44Markers_clean_120fps.c3d",
@@ -63,9 +63,7 @@ def main() -> None:
         base = tmp / "base"
         subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(base), a.base], check=True)
         try:
-            import compileall
-
-            compileall.compile_dir(str(base / "mocapskel"), quiet=1)  # as bench.common does for this tree
+            compile_package(base)  # as for this tree
             for take in takes:
                 times = {"base": [], "new": []}
                 for _ in range(max(1, a.repeat)):

@@ -15,13 +15,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def compile_package() -> None:
-    """Write the package's bytecode, as installing it does: the fits in fresh processes then time what a
-    user's installed command does, not compiling the package (a third of a second, again in every
-    process where ``PYTHONDONTWRITEBYTECODE`` is set, which keeps Python from writing it on import)."""
+def compile_package(root: Path = REPO) -> None:
+    """Write the bytecode of the package in the checkout ``root``, as installing it does: the fits in
+    fresh processes then time what a user's installed command does, not compiling the package (a
+    third of a second, again in every process where ``PYTHONDONTWRITEBYTECODE`` is set, which keeps
+    Python from writing it on import)."""
     import compileall
 
-    compileall.compile_dir(str(REPO / "mocapskel"), quiet=1)
+    compileall.compile_dir(str(root / "mocapskel"), quiet=1)
 
 
 compile_package()
