@@ -37,6 +37,15 @@ the result against the take itself, with no template:
                     person (a lower-body gait set), the same for like limbs: two
                     children of one segment that are chains of the same length,
                     two segments or more, compared segment for segment;
+- ``limb_mirror``   in a skeleton recognised as a person, a joint on the midline
+                    (the lumbar or neck joint of the segment both hips or both
+                    shoulders hang from) farther from the mid-plane of the two
+                    hips (shoulders) than a fifth of their spacing: a person's
+                    left and right limbs hang mirrored about the midline, so one
+                    of the three joints sits where no person's does (a shoulder
+                    the walk hardly moves, put in the neck; a segment holding
+                    the other side's markers). Mirrored errors (both shoulders
+                    too medial) keep the symmetry and are not seen;
 - ``not_converged`` joints whose centre fit stopped before converging.
 
 Every failing check is one :class:`Finding`: which check, the joint or segment
@@ -78,6 +87,10 @@ class Limits:
     """...nor one smaller than this."""
     asymmetry: float = 0.2
     """The same bone of a left and a right limb may be at most this fraction longer on one side."""
+    mirror: float = 0.2
+    """A person's midline joint may lie at most this fraction of the hips' (shoulders') spacing off their
+    mid-plane. On generated takes with their truth, the fits it flags had a hip or shoulder 78-174 mm off
+    (a mid-plane 0.21-1.75 of the spacing off a midline joint), fits within 70 mm of the truth at most 0.14."""
 
 
 @dataclass(frozen=True)
@@ -248,6 +261,7 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    tuple(bad.tolist())))
 
     out.extend(_limb_asymmetry(motion, limits.asymmetry))
+    out.extend(_limb_mirror(motion, limits.mirror))
 
     for s, note in (joint_notes or {}).items():
         jn = _joint_name(names, parent, s)
@@ -291,6 +305,53 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
                            f"the {part} ({sk.names[s_l]}, {sk.names[s_r]}) are {la:.0f} and {lb:.0f} mm long "
                            f"({100 * (max(la, lb) / min(la, lb) - 1):.0f} % apart; {who}) — a "
                            "joint of the longer or the shorter is poorly determined (the take hardly moves it)"))
+    return out
+
+
+def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
+    """The hips and the shoulders of a person whose mid-plane misses a midline joint of the segment they hang
+    from by more than ``tol`` of their spacing (rest pose; rigid, so every frame).
+
+    The pair: the first segments of the two legs (``UpLeg``) and of the two arms (``Shoulder``, else ``Arm``),
+    when they hang from one segment. Its midline joints: that segment's own joint with its parent (none for the
+    root, whose origin the fit may put anywhere) and its other children but limbs (the spine on the pelvis; the
+    neck or head on the chest)."""
+    from .naming import recognise
+
+    sk = motion.skeleton
+    naming = recognise(sk, motion)
+    if isinstance(naming, str):
+        return []
+    parent = np.asarray(sk.parent)
+    names = sk.names
+    role = {n: s for s, n in enumerate(naming.names)}
+    sided = {s for n, s in role.items() if n.startswith(("Left", "Right"))}
+    out = []
+    for part, firsts in (("hips", ("UpLeg",)), ("shoulders", ("Shoulder", "Arm"))):
+        pair = []
+        for side in ("Left", "Right"):
+            got = next((role[side + f] for f in firsts if side + f in role), None)
+            pair.append(got)
+        a, b = pair
+        if a is None or b is None or parent[a] != parent[b] or parent[a] < 0:
+            continue
+        p = int(parent[a])
+        mids = ([p] if parent[p] >= 0 else []) + [int(k) for k in np.flatnonzero(parent == p) if int(k) not in sided]
+        w = sk.origin[a] - sk.origin[b]
+        width = float(np.linalg.norm(w))
+        if not mids or not width > 0:
+            continue
+        u = w / width
+        mid = 0.5 * (sk.origin[a] + sk.origin[b])
+        off = {q: float((sk.origin[q] - mid) @ u) for q in mids}
+        q = max(off, key=lambda k: abs(off[k]))
+        if abs(off[q]) > tol * width:
+            jn = _joint_name(names, parent, q)
+            out.append(Finding("limb_mirror", f"{names[a]}/{names[b]}",
+                               f"the {part} (left {names[a]}, right {names[b]}) are not mirrored about the midline: joint {jn} lies "
+                               f"{abs(off[q]):.0f} mm off their mid-plane ({abs(off[q]) / width:.2f} of their {width:.0f} mm "
+                               "spacing; a person's lie on it) — one of the three joints is poorly determined (the take "
+                               "hardly moves it) or a segment holds markers of its neighbour"))
     return out
 
 

@@ -258,3 +258,61 @@ def test_like_limbs_of_a_skeleton_not_taken_for_a_person_are_compared_too(human_
     assert _names(found, "limb_asymmetry") == {f"{sk.names[min(hip, right)]}/{sk.names[max(hip, right)]}"}
     msg = next(f.message for f in found if f.check == "limb_asymmetry")
     assert "like limbs' first segments" in msg and "30 % apart" in msg
+
+
+def _moved(motion, s: int, d: np.ndarray):
+    """``motion`` with segment ``s``'s joint moved by ``d`` (rest pose), its markers left where they are."""
+    sk = motion.skeleton
+    origin = sk.origin.copy()
+    origin[s] += d
+    local = sk.marker_local.copy()
+    local[sk.marker_segment == s] -= d
+    return replace(motion, skeleton=replace(sk, origin=origin, marker_local=local))
+
+
+def test_a_shoulder_put_in_the_neck_warns_that_the_shoulders_are_not_mirrored(human_fit) -> None:
+    """A real CMU jump's right shoulder came out in the neck (its segment held the back and acromion markers
+    too): 31 mm from the thorax's midline against the left's 130 (three quarters of the way in; 130 mm from
+    the reference's shoulder), and generated walks' one shoulder 115-173 mm off; nothing said. The right
+    shoulder moved 80 % of the way to the midline: said, naming both shoulders; 20 % of the way (a shoulder the
+    fit left a little inside): not said; the untouched fit, whose midline joints lie on the shoulders'
+    mid-plane, has none."""
+    from mocapskel.naming import recognise
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
+    left, right = role["LeftArm"], role["RightArm"]
+    assert not _names(checks.run_checks(motion, markers_of(motion).points), "limb_mirror")
+    half = 0.5 * (sk.origin[left] - sk.origin[right])  # the right shoulder to the midline
+    for frac, said in ((0.8, True), (0.2, False)):
+        found = checks.run_checks(_moved(motion, right, frac * half), markers_of(motion).points)
+        assert bool(_names(found, "limb_mirror")) is said, frac
+        if said:
+            assert _names(found, "limb_mirror") == {f"{sk.names[left]}/{sk.names[right]}"}
+            msg = next(f.message for f in found if f.check == "limb_mirror")
+            assert "shoulders" in msg and "mid-plane" in msg
+
+
+def test_a_lumbar_joint_off_the_hips_midline_warns(human_fit) -> None:
+    """A real CMU walk's (07_01) lumbar joint came out 91 mm to one side of its hips' mid-plane (a third of their
+    spacing). The spine's joint moved sideways by 0.3 of the hips' spacing: said, naming the hips and the
+    lumbar joint; by 0.1 of it (a lumbar joint the fit left a little to one side): not said."""
+    from mocapskel.naming import recognise
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
+    left, right = role["LeftUpLeg"], role["RightUpLeg"]
+    # the lumbar joint: the origin of whichever of pelvis and spine is the other's child
+    lumbar = role["Spine"] if sk.parent[role["Spine"]] == role["Hips"] else role["Hips"]
+    w = sk.origin[left] - sk.origin[right]
+    for frac, said in ((0.3, True), (0.1, False)):
+        found = checks.run_checks(_moved(motion, lumbar, frac * w), markers_of(motion).points)
+        assert bool(_names(found, "limb_mirror")) is said, frac
+        if said:
+            assert _names(found, "limb_mirror") == {f"{sk.names[left]}/{sk.names[right]}"}
+            msg = next(f.message for f in found if f.check == "limb_mirror")
+            assert "hips" in msg and f"{sk.names[sk.parent[lumbar]]}-{sk.names[lumbar]}" in msg

@@ -17,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -96,6 +97,43 @@ def test_cmu_full_body_take_joints_and_bones(tmp_path: Path) -> None:
     names = set(s["matched"].values())  # recognised as a person: humanoid names, each where CMU has it
     assert {"LeftUpLeg", "RightUpLeg", "LeftLeg", "RightLeg", "Head", "LeftArm", "LeftForeArm"} <= names, s["matched"]
     assert s["matched"]["lhip[lfemur]"] == "LeftUpLeg" and s["matched"]["rknee[rtibia]"] == "RightLeg"
+
+
+def test_cmu_take_says_its_shoulders_are_not_mirrored_where_the_reference_shows_one_misplaced(tmp_path: Path) -> None:
+    """The CMU jump's right upper-arm segment holds the back and acromion markers too (RBAC, RSHO), and its
+    shoulder joint comes out in the neck: 31 mm from the thorax's midline against the left's 130 (the
+    reference's right shoulder 130 mm away). Bones of equal length, so nothing said it until the midline
+    joints were checked against the shoulders' mid-plane. The check names the shoulders, and the reference
+    agrees: one of the two shoulders is more than 100 mm from CMU's. The hips, both within 40 mm of CMU's
+    (asserted above), are not named."""
+    import gc
+    import importlib.util
+    import warnings
+
+    if not (REALREF / "score.py").is_file():
+        pytest.skip(MISSING)
+    out, rep = tmp_path / "cmu.bvh", tmp_path / "cmu.json"
+    r = CliRunner().invoke(cli, ["fit", str(REALREF / "cmu_16_07.c3d"), "-o", str(out), "--up", "z", "--units", "mm",
+                                 "--no-cache", "-q", "--report", str(rep)])
+    assert r.exit_code == 0, r.stderr
+    found = [c for c in json.loads(rep.read_text())["checks"] if c["check"] == "limb_mirror"]
+    assert len(found) == 1 and "the shoulders" in found[0]["message"], found
+    spec = importlib.util.spec_from_file_location("realref_bvh", REALREF / "bvh.py")  # the scorer's own reader
+    rbvh = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rbvh)
+    with warnings.catch_warnings():  # the scorer's reader leaves its file to the garbage collector
+        warnings.simplefilter("ignore", ResourceWarning)
+        nodes, motion, _ = rbvh.parse(str(out))
+        gc.collect()
+    P = rbvh.fk(nodes, motion)
+    names = [n.name for n in nodes]
+    ref = np.load(REALREF / "cmu_16_07.ref.npz")
+    rn = [str(n) for n in ref["names"]]
+    off = {}
+    for side, s in (("Left", "l"), ("Right", "r")):
+        J = ref["joints"][: len(P), rn.index(f"{s}shoulder[{s}humerus]")]
+        off[side] = float(np.nanmean(np.linalg.norm(P[: len(J), names.index(f"{side}Arm")] - J, axis=1)))
+    assert max(off.values()) > 100.0, off
 
 
 @pytest.mark.parametrize("rel,want", [
