@@ -273,7 +273,10 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
     """The bones of a person's left and right limbs that differ by more than ``tol`` (a fraction); in a
     skeleton not recognised as a person (a lower-body gait set), those of like limbs: two children of
     one segment whose subtrees have the same shape, each a chain of two segments or more (two legs on
-    a pelvis), compared segment for segment down the chain."""
+    a pelvis), compared segment for segment down the chain; and in a tree that would be a person's but for its
+    two legs or its two arms, those two when their lengths from the trunk differ by more than half or their
+    numbers of segments differ (a real stair descent's right foot split in two, a 487 mm rear-foot bone,
+    the legs 1087 and 1644 mm)."""
     from .naming import recognise
 
     sk = motion.skeleton
@@ -305,6 +308,21 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
                            f"the {part} ({sk.names[s_l]}, {sk.names[s_r]}) are {la:.0f} and {lb:.0f} mm long "
                            f"({100 * (max(la, lb) / min(la, lb) - 1):.0f} % apart; {who}) — a "
                            "joint of the longer or the shorter is poorly determined (the take hardly moves it)"))
+    limbs = getattr(naming, "limbs", None) if isinstance(naming, str) else None
+    if limbs is not None:
+        # a person's tree but for this pair: their lengths, or their numbers of segments, differ
+        what, ca, cb, la, lb = limbs
+        pair = f"{sk.names[ca[0]]}/{sk.names[cb[0]]}"
+        if not (min(la, lb) > 0 and max(la, lb) <= 1.5 * min(la, lb)):
+            how = (f"are {la:.0f} and {lb:.0f} mm long from the trunk ({100 * (max(la, lb) / max(min(la, lb), 1e-9) - 1):.0f} % "
+                   "apart; a person's differ by a few per cent)")
+        else:
+            how = (f"have {len(ca)} and {len(cb)} segments (a person's are alike: a joint the take hardly moves was not "
+                   "found on one side, or a group of its markers made a segment of its own)")
+        if not any(set(f.name.split("/")) == {sk.names[ca[0]], sk.names[cb[0]]} for f in out):
+            out.append(Finding("limb_asymmetry", pair,
+                               f"the two {what} of this otherwise person-shaped tree ({sk.names[ca[0]]}..., {sk.names[cb[0]]}...) "
+                               f"{how} — so it is not named as a person"))
     return out
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Naming", "name_skeleton", "SCHEMES", "JOINT_OF"]
+__all__ = ["Naming", "NotPerson", "name_skeleton", "SCHEMES", "JOINT_OF"]
 
 SCHEMES = ("auto", "humanoid", "segments")
 
@@ -82,6 +82,19 @@ class Naming:
     def report(self) -> dict:
         return {"scheme": self.scheme, "root": self.names[self.root], "side_from": self.side_from or None,
                 "note": self.note}
+
+
+class NotPerson(str):
+    """Why a tree is not taken for a person (the text), and, when it is a person's but for its two legs or
+    its two arms, which differ in length or in number of segments: ``limbs`` = (``"legs"`` or ``"arms"``,
+    the segments of one limb's chain from the trunk, those of the other's, their lengths in mm), else None."""
+
+    limbs: tuple | None
+
+    def __new__(cls, text: str, limbs: tuple | None = None) -> "NotPerson":
+        out = super().__new__(cls, text)
+        out.limbs = limbs
+        return out
 
 
 def _neighbours(parent: np.ndarray) -> list[list[int]]:
@@ -194,7 +207,8 @@ def name_skeleton(skel, motion=None, scheme: str = "auto") -> Naming:
 
 
 def recognise(skel, motion=None) -> Naming | str:
-    """The humanoid naming of ``skel``, or the reason it is not taken for a person."""
+    """The humanoid naming of ``skel``, or the reason it is not taken for a person (a :class:`NotPerson`
+    where its limbs say which)."""
     par = np.asarray(skel.parent)
     S = len(par)
     if S < 7:
@@ -246,13 +260,15 @@ def recognise(skel, motion=None) -> Naming | str:
     if len(chains[head]) == 2 and not _farther_from(skel, pelvis, chains[head][1], chains[head][0]):
         return "the end of the head chain is nearer the pelvis than its first segment (not a neck and a head)"
     for pair, what in ((legs, "legs"), (arms, "arms")):
-        if any(not 2 <= len(chains[i]) <= 4 for i in pair):
-            return f"{what} of {[len(chains[i]) for i in pair]} segments (2-4 expected)"
         a, b = length[pair[0]], length[pair[1]]
+        limbs = (what, tuple(chains[pair[0]]), tuple(chains[pair[1]]), a, b)
+        if any(not 2 <= len(chains[i]) <= 4 for i in pair):
+            counts = [len(chains[i]) for i in pair]
+            return NotPerson(f"{what} of {counts} segments (2-4 expected)", limbs if counts[0] != counts[1] else None)
         if not (min(a, b) > 0 and max(a, b) <= 1.5 * min(a, b)):
-            return f"{what} of unequal length ({a:.0f} and {b:.0f} mm)"
+            return NotPerson(f"{what} of unequal length ({a:.0f} and {b:.0f} mm)", limbs)
         if len(chains[pair[0]]) != len(chains[pair[1]]):
-            return f"{what} of {len(chains[pair[0]])} and {len(chains[pair[1]])} segments"
+            return NotPerson(f"{what} of {len(chains[pair[0]])} and {len(chains[pair[1]])} segments", limbs)
     if length[head] >= min(length[i] for i in legs + arms):
         return "the head chain is not shorter than the limbs"
     if len(trunk) == 1 and min(length[i] for i in legs) < max(length[i] for i in arms):

@@ -316,3 +316,46 @@ def test_a_lumbar_joint_off_the_hips_midline_warns(human_fit) -> None:
             assert _names(found, "limb_mirror") == {f"{sk.names[left]}/{sk.names[right]}"}
             msg = next(f.message for f in found if f.check == "limb_mirror")
             assert "hips" in msg and f"{sk.names[sk.parent[lumbar]]}-{sk.names[lumbar]}" in msg
+
+
+def test_limbs_that_keep_a_person_shaped_tree_from_being_named_a_person_are_said(human_fit, monkeypatch) -> None:
+    """A tree that is a person's but for two arms of 2 and 1 segments (a real CMU walk whose elbow hardly
+    bends on one side) or two legs of unequal length (a real stair descent's, 1087 and 1644 mm, its foot
+    split in two) was written without a word. The naming's reason names the two limbs; the check says it,
+    naming their first segments; a reason without limbs (a head chain of three segments) says nothing."""
+    from mocapskel import naming as naming_mod
+    from mocapskel.naming import NotPerson, recognise
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
+    la, fa, ra = role["LeftArm"], role["LeftForeArm"], role["RightArm"]
+    pts = markers_of(motion).points
+    for limbs, how in (((("arms", (la, fa), (ra,), 600.0, 550.0)), "have 2 and 1 segments"),
+                       ((("legs", (la, fa), (ra, role["RightForeArm"]), 1087.0, 1644.0)), "1087 and 1644 mm")):
+        monkeypatch.setattr(naming_mod, "recognise", lambda *a, limbs=limbs, **k: NotPerson("(test)", limbs))
+        found = [f for f in checks.run_checks(motion, pts) if f.check == "limb_asymmetry"]
+        assert [f.name for f in found] == [f"{sk.names[la]}/{sk.names[ra]}"], found
+        assert how in found[0].message and f"the two {limbs[0]}" in found[0].message
+    monkeypatch.setattr(naming_mod, "recognise", lambda *a, **k: NotPerson("a head chain of 3 segments"))
+    assert not [f for f in checks.run_checks(motion, pts) if f.check == "limb_asymmetry"]
+
+
+def test_naming_gives_the_unlike_limbs_it_stops_at(human_fit) -> None:
+    """The naming's reason carries the two limbs when they alone keep the tree from a person's: the right
+    leg lengthened by 700 mm below the knee (its shank's and foot's joints moved down, markers with them)."""
+    from mocapskel.naming import NotPerson, recognise
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
+    origin = sk.origin.copy()
+    along = sk.origin[role["RightLeg"]] - sk.origin[role["RightUpLeg"]]  # hip to knee
+    for n in ("RightLeg", "RightFoot"):
+        origin[role[n]] += 700.0 * along / np.linalg.norm(along)
+    why = recognise(replace(sk, origin=origin), motion)
+    assert isinstance(why, NotPerson) and "legs of unequal length" in why
+    what, ca, cb, a, b = why.limbs
+    assert what == "legs" and {ca[0], cb[0]} == {role["LeftUpLeg"], role["RightUpLeg"]} and max(a, b) > 1.5 * min(a, b)

@@ -268,3 +268,40 @@ def test_cmu_marker_set_head_hangs_on_the_thorax(path: str) -> None:
     nbrs = [b if a == head[0] else a for a, b in topo.edges.tolist() if head[0] in (a, b)]
     thorax = {"C7", "T10", "CLAV", "STRN", "RBAC"}
     assert nbrs and all(thorax & set(names[s]) for s in nbrs), [names[s] for s in nbrs]
+
+
+@pytest.mark.parametrize("rel,what,how", [
+    # the right foot split in two (rigid plates on the shank: the foot's own flexion of 1.4-2.5 mm is above
+    # the take's tolerance), a rear-foot bone of 487 mm where the left foot's is 153
+    ("addbiomechanics/stairdown_markers.trc", "legs", "mm long from the trunk"),
+    # a short walk whose left elbow hardly bends: upper arm and forearm one segment on that side
+    ("cmu/07_12.c3d", "arms", "have 2 and 1 segments"),
+])
+def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: str, tmp_path: Path) -> None:
+    """A tree that is a person's but for its two legs (or arms) of unequal length or of unequal numbers of
+    segments is not named as a person, and was written with no warning: a skeleton no person has. Said now
+    (``limb_asymmetry``), naming the two limbs."""
+    p = REALDATA / rel
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — the unlike-limbs test did NOT run")
+    rep = tmp_path / "r.json"
+    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--no-cache", "-q", "--report", str(rep)])
+    assert r.exit_code == 0, r.stderr
+    report = json.loads(rep.read_text())
+    assert "not recognised as a person" in report["export"]["names"]["note"]
+    found = [c for c in report["checks"] if c["check"] == "limb_asymmetry" and f"the two {what}" in c["message"]]
+    assert len(found) == 1 and how in found[0]["message"], report["checks"]
+    if what == "legs":  # the split foot made one leg a segment longer, and its bones longer than the other's
+        kids = {}
+        for b in report["bones"]:
+            kids.setdefault(b["parent"], []).append(b["segment"])
+        length = {b["segment"]: b["length_mm"] for b in report["bones"]}
+        chains = []
+        for first in found[0]["name"].split("/"):
+            chain = [first]
+            while len(kids.get(chain[-1], [])) == 1:
+                chain.append(kids[chain[-1]][0])
+            chains.append(chain)
+        assert sorted(len(c) for c in chains) == [3, 4], chains
+        long = max(chains, key=len)
+        assert max(length[s] for s in long[2:]) > 450.0  # a foot segment's bone longer than a shank
