@@ -36,7 +36,10 @@ the result against the take itself, with no template:
                     to place along the thigh); in a skeleton not recognised as a
                     person (a lower-body gait set), the same for like limbs: two
                     children of one segment that are chains of the same length,
-                    two segments or more, compared segment for segment;
+                    two segments or more, compared segment for segment; and in a
+                    tree that would be a person's but for its two legs (arms),
+                    those two when their lengths differ by more than half or their
+                    numbers of segments differ (a stair descent's foot split in two);
 - ``limb_mirror``   in a skeleton recognised as a person, a joint on the midline
                     (the lumbar or neck joint of the segment both hips or both
                     shoulders hang from) farther from the mid-plane of the two
