@@ -368,11 +368,22 @@ def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
         q = max(off, key=lambda k: abs(off[k]))
         if abs(off[q]) > tol * width:
             jn = _joint_name(names, parent, q)
+            # how far each of the two lies from the midline (the line through two midline joints, or the one)
+            if len(mids) >= 2:
+                i, j = max(((i, j) for i in mids for j in mids if i < j),
+                           key=lambda ij: float(np.linalg.norm(sk.origin[ij[0]] - sk.origin[ij[1]])))
+                d = sk.origin[j] - sk.origin[i]
+                d = d / max(float(np.linalg.norm(d)), 1e-12)
+                side = [float(np.linalg.norm((sk.origin[x] - sk.origin[i]) - ((sk.origin[x] - sk.origin[i]) @ d) * d))
+                        for x in (a, b)]
+            else:
+                side = [float(np.linalg.norm(sk.origin[x] - sk.origin[q])) for x in (a, b)]
             out.append(Finding("limb_mirror", f"{names[a]}/{names[b]}",
                                f"the {part} (left {names[a]}, right {names[b]}) are not mirrored about the midline: joint {jn} lies "
                                f"{abs(off[q]):.0f} mm off their mid-plane ({abs(off[q]) / width:.2f} of their {width:.0f} mm "
-                               "spacing; a person's lie on it) — one of the three joints is poorly determined (the take "
-                               "hardly moves it) or a segment holds markers of its neighbour"))
+                               f"spacing; a person's lie on it), the left {side[0]:.0f} mm and the right {side[1]:.0f} mm from the "
+                               "midline — one of the three joints is poorly determined (the take hardly moves it) or a segment "
+                               "holds markers of its neighbour"))
     return out
 
 

@@ -293,6 +293,11 @@ def test_a_shoulder_put_in_the_neck_warns_that_the_shoulders_are_not_mirrored(hu
             assert _names(found, "limb_mirror") == {f"{sk.names[left]}/{sk.names[right]}"}
             msg = next(f.message for f in found if f.check == "limb_mirror")
             assert "shoulders" in msg and "mid-plane" in msg
+            # which side: the moved right shoulder a fifth as far from the midline as the left
+            import re
+
+            far_l, far_r = (float(x) for x in re.search(r"the left (\d+) mm and the right (\d+) mm", msg).groups())
+            assert far_r < 0.35 * far_l, msg
 
 
 def test_a_lumbar_joint_off_the_hips_midline_warns(human_fit) -> None:
