@@ -349,11 +349,7 @@ def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
     sided = {s for n, s in role.items() if n.startswith(("Left", "Right"))}
     out = []
     for part, firsts in (("hips", ("UpLeg",)), ("shoulders", ("Shoulder", "Arm"))):
-        pair = []
-        for side in ("Left", "Right"):
-            got = next((role[side + f] for f in firsts if side + f in role), None)
-            pair.append(got)
-        a, b = pair
+        a, b = (next((role[side + f] for f in firsts if side + f in role), None) for side in ("Left", "Right"))
         if a is None or b is None or parent[a] != parent[b] or parent[a] < 0:
             continue
         p = int(parent[a])
@@ -374,14 +370,14 @@ def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
                            key=lambda ij: float(np.linalg.norm(sk.origin[ij[0]] - sk.origin[ij[1]])))
                 d = sk.origin[j] - sk.origin[i]
                 d = d / max(float(np.linalg.norm(d)), 1e-12)
-                side = [float(np.linalg.norm((sk.origin[x] - sk.origin[i]) - ((sk.origin[x] - sk.origin[i]) @ d) * d))
-                        for x in (a, b)]
+                from_mid = [float(np.linalg.norm((sk.origin[x] - sk.origin[i]) - ((sk.origin[x] - sk.origin[i]) @ d) * d))
+                            for x in (a, b)]
             else:
-                side = [float(np.linalg.norm(sk.origin[x] - sk.origin[q])) for x in (a, b)]
+                from_mid = [float(np.linalg.norm(sk.origin[x] - sk.origin[q])) for x in (a, b)]
             out.append(Finding("limb_mirror", f"{names[a]}/{names[b]}",
                                f"the {part} (left {names[a]}, right {names[b]}) are not mirrored about the midline: joint {jn} lies "
                                f"{abs(off[q]):.0f} mm off their mid-plane ({abs(off[q]) / width:.2f} of their {width:.0f} mm "
-                               f"spacing; a person's lie on it), the left {side[0]:.0f} mm and the right {side[1]:.0f} mm from the "
+                               f"spacing; a person's lie on it), the left {from_mid[0]:.0f} mm and the right {from_mid[1]:.0f} mm from the "
                                "midline — one of the three joints is poorly determined (the take hardly moves it) or a segment "
                                "holds markers of its neighbour"))
     return out
