@@ -65,7 +65,7 @@ import numpy as np
 from .artifacts import Motion
 from .kinematics import segment_origins
 
-__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text"]
+__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text", "like_chains", "limb_chains"]
 
 
 @dataclass(frozen=True)
@@ -288,8 +288,8 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
     naming = recognise(sk, motion)
     pairs = []  # (left segment, right segment, what they are)
     if isinstance(naming, str):  # not a person: like limbs by the tree's shape alone
-        for a, b in _like_chains(parent):
-            for k, (s_a, s_b) in enumerate(zip(_chain(parent, a), _chain(parent, b))):
+        for a, b in like_chains(parent):
+            for k, (s_a, s_b) in enumerate(zip(limb_chains(parent, a), limb_chains(parent, b))):
                 nth = ("first", "second", "third", "fourth")[k] if k < 4 else f"{k + 1}th"
                 pairs.append((s_a, s_b, f"like limbs' {nth} segments", "like"))
     else:
@@ -383,7 +383,7 @@ def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
     return out
 
 
-def _chain(parent: np.ndarray, s: int) -> list[int]:
+def limb_chains(parent: np.ndarray, s: int) -> list[int]:
     """Segment ``s`` and its descendants down a chain (while each has one child)."""
     out = [int(s)]
     while (kids := np.flatnonzero(parent == out[-1])).size == 1:
@@ -391,12 +391,12 @@ def _chain(parent: np.ndarray, s: int) -> list[int]:
     return out
 
 
-def _like_chains(parent: np.ndarray) -> list[tuple[int, int]]:
+def like_chains(parent: np.ndarray) -> list[tuple[int, int]]:
     """Pairs of children of one segment that are chains of the same length, two segments or more."""
     out = []
     for p in range(len(parent)):
         kids = [int(k) for k in np.flatnonzero(parent == p)]
-        chains = {c: _chain(parent, c) for c in kids}
+        chains = {c: limb_chains(parent, c) for c in kids}
         for i, a in enumerate(kids):
             for b in kids[i + 1:]:
                 ca, cb = chains[a], chains[b]

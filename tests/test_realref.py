@@ -81,18 +81,19 @@ def test_cmu_full_body_take_joints_and_bones(tmp_path: Path) -> None:
     Fewer joints than the 14 of an earlier fit: the thorax is one segment now (C7 and T10 made a
     group of their own, on which the chest group hung from the head, one joint more), and the 14th,
     CMU's lumbar joint, had been matched by the root's origin (the mean of its children's joints).
-    Bones within 39 mm on average over the pairs scored (37.1 over 9 now): what is left is the
-    thighs (our hips sit 23-34 mm above CMU's, placed by its model's regression), the left upper arm
-    (its elbow at the marker: the forearm carries the hand's markers, so only one limb measures a
-    half-width), and the pairs to CMU's lumbar joint, matched by our root (the hips' midpoint, as
-    humanoid rigs have it). The target is 25 mm."""
+    Bones within 30 mm on average over the pairs scored (27.2 over 9 now; 37.1 while Kirk's distance
+    penalty pulled each hip towards the middle of the pelvis's four markers, the hips 146 mm apart against
+    CMU's 173, now 204 with the pelvis's share on its marker nearest each thigh): what is left is the
+    thighs (22 and 34 mm long), the left upper arm (its elbow at the marker: the forearm carries the hand's
+    markers, so only one limb measures a half-width), and the pairs to CMU's lumbar joint, matched by our
+    root (the hips' midpoint, as humanoid rigs have it). The target is 25 mm."""
     s = _score("cmu_16_07", tmp_path)
     assert s["joints_matched"] >= 12, s["unmatched_ref"]
     hips = {k: v for k, v in s["per_joint_rms_mm"].items() if k.startswith(("lhip", "rhip"))}
     assert len(hips) == 2 and max(hips.values()) <= 40.0, s["per_joint_rms_mm"]
     knees = {k: v for k, v in s["per_joint_rms_mm"].items() if k.startswith(("lknee", "rknee"))}
     assert len(knees) == 2 and max(knees.values()) <= 40.0, s["per_joint_rms_mm"]
-    assert s["bone_err_mm_mean"] <= 39.0, s["bones"]
+    assert s["bone_err_mm_mean"] <= 30.0, s["bones"]
     assert s["joint_rms_mean_mm"] <= 50.0, s["per_joint_rms_mm"]
     names = set(s["matched"].values())  # recognised as a person: humanoid names, each where CMU has it
     assert {"LeftUpLeg", "RightUpLeg", "LeftLeg", "RightLeg", "Head", "LeftArm", "LeftForeArm"} <= names, s["matched"]
@@ -305,3 +306,24 @@ def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: 
         assert sorted(len(c) for c in chains) == [3, 4], chains
         long = max(chains, key=len)
         assert max(length[s] for s in long[2:]) > 450.0  # a foot segment's bone longer than a shank
+
+
+def test_a_walks_legs_keep_their_like_bones_when_two_starts_tie(tmp_path: Path) -> None:
+    """CMU 07_01 (a walk): the rigid stage's two starts end 0.3 % apart in marker residual, which the markers
+    do not tell apart; the lower one had the right thigh (one marker) 323 mm long against the left's 469.
+    Between starts that tie, the one whose like limbs' bones are alike wins: the thighs within a fifth of each
+    other, and no limb_asymmetry said of them."""
+    p = REALDATA / "cmu/07_01.c3d"
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — the tied-starts test did NOT run")
+    rep = tmp_path / "r.json"
+    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--no-cache", "-q", "--report", str(rep)])
+    assert r.exit_code == 0, r.stderr
+    report = json.loads(rep.read_text())
+    segs = {x["name"]: x["markers"] for x in report["segments"]}
+    length = {b["segment"]: b["length_mm"] for b in report["bones"]}
+    thighs = [n for n, m in segs.items() if {"LTHI"} <= set(m) or {"RTHI"} <= set(m)]
+    assert len(thighs) == 2, segs
+    a, b = (length[t] for t in thighs)
+    assert max(a, b) <= 1.2 * min(a, b), (thighs, a, b)
+    assert not [c for c in report["checks"] if c["check"] == "limb_asymmetry" and set(c["name"].split("/")) == set(thighs)]

@@ -7,8 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mocapskel.solvers.jmv import (
+    BODY_MARKERS,
     JointFit,
     algebraic_init,
+    balanced_alpha,
+    edge_alpha,
     fixed_radius_centres,
     jmv_joint,
     jmv_joint_long,
@@ -263,3 +266,27 @@ def test_adjugate_is_the_cross_products_of_rows_bit_for_bit():
             scale = np.abs(A).max(axis=(1, 2)) ** 3
             err = np.abs(A @ _adj3(A) - np.linalg.det(A)[:, None, None] * np.eye(3)).max(axis=(1, 2))
             assert (err <= 1e-12 * scale).all()
+
+
+def test_edge_alpha_puts_a_bodys_share_on_its_marker_nearest_a_two_marker_limb():
+    """Between a body of four markers and a limb segment of two, the body's half of Kirk's penalty goes to
+    the body's marker nearest the limb (mean over frames, a marker's gaps left out); the limb keeps its half,
+    the total is Kirk's. Between segments of other sizes (a three-marker plate and two, four and one, two and
+    two) and with no penalty, the balanced weights stay."""
+    rng = np.random.default_rng(5)
+    F = 40
+    body = rng.normal(0.0, 100.0, (F, BODY_MARKERS, 3))
+    limb = rng.normal(0.0, 100.0, (F, 2, 3))
+    body[:, 2] = limb.mean(1) + rng.normal(0.0, 20.0, (F, 3))  # the body's marker nearest the limb
+    body[::3, 2] = np.nan  # unseen now and then
+    w = np.asarray(edge_alpha(0.3, body, limb))
+    bal = np.asarray(balanced_alpha(0.3, BODY_MARKERS, 2))
+    assert w.shape == (BODY_MARKERS + 2,)
+    assert np.allclose(w[:BODY_MARKERS], [0.0, 0.0, bal[:BODY_MARKERS].sum(), 0.0])
+    assert np.allclose(w[BODY_MARKERS:], bal[BODY_MARKERS:]) and np.isclose(w.sum(), bal.sum())
+    # the body given second: the same weights in its place
+    w2 = np.asarray(edge_alpha(0.3, limb, body))
+    assert np.allclose(w2, np.concatenate([w[BODY_MARKERS:], w[:BODY_MARKERS]]))
+    for a, b in ((body[:, :3], limb), (body, limb[:, :1]), (limb, limb + 50.0)):
+        assert np.allclose(edge_alpha(0.3, a, b), balanced_alpha(0.3, a.shape[1], b.shape[1]))
+    assert edge_alpha(0.0, body, limb) == 0.0

@@ -34,11 +34,12 @@ be fitted, they return a falsy :class:`JointFit` with a reason instead.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import warnings
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["JointFit", "joint_cost", "joint_cost_grad", "jmv_joint", "jmv_joint_long", "fixed_radius_centres", "pair_cost",
+__all__ = ["JointFit", "edge_alpha", "joint_cost", "joint_cost_grad", "jmv_joint", "jmv_joint_long", "fixed_radius_centres", "pair_cost",
            "algebraic_init", "nearest_midpoint"]
 
 #: Floor for distances when normalising directions (a joint exactly on a marker).
@@ -169,6 +170,45 @@ def balanced_alpha(alpha: float, n_a: int, n_b: int) -> float | np.ndarray:
         return alpha
     n = n_a + n_b
     return np.concatenate([np.full(n_a, alpha * n / (2.0 * n_a)), np.full(n_b, alpha * n / (2.0 * n_b))])
+
+
+#: A segment of this many markers or more is a body (a pelvis, a thorax) whose edge a limb's joint sits at.
+BODY_MARKERS = 4
+
+
+def edge_alpha(alpha: float, a: np.ndarray, b: np.ndarray) -> float | np.ndarray:
+    """Kirk's distance penalty per point of the segments ``a`` (F, Na, 3) and ``b`` (F, Nb, 3), NaN where
+    unseen: :func:`balanced_alpha`, except that between a body of ``BODY_MARKERS`` or more markers and a
+    segment of two, the body's share goes to its one marker nearest that segment (mean distance over
+    frames and over the two).
+
+    A limb's joint sits at the edge of the body it hangs from, where the limb meets it (a hip under the
+    front and back waist markers of its side, a shoulder under its acromion marker), not in the body's
+    middle: the mean distance to all of a pelvis's markers pulls a hip, along the flexion axis a walk
+    leaves free, towards the midline. A limb segment of two markers does not fix that axis either (three
+    would fix its frame, and SCoRE places the joint). Measured: the CMU jump's hips 146 mm apart against the
+    reference's 173 before, 204 after (the mean bone error 37.1 -> 27.2 mm, its joints 48.0 -> 47.9 mm);
+    the generated lower-body gait walk, seed 1, 50.3 -> 18.9 mm joint rms after IK against the truth;
+    generated full-body walks, runs and kicks within 1 mm of before after IK. A plate of three markers on a
+    thigh is not a body: its nearest marker is mid-thigh, and pulling a knee there broke a real gait take's
+    shank (a bone of 92 -> 496 mm).
+    """
+    base = balanced_alpha(alpha, a.shape[1], b.shape[1])
+    na, nb = a.shape[1], b.shape[1]
+    if alpha == 0.0 or not ((na >= BODY_MARKERS and nb == 2) or (nb >= BODY_MARKERS and na == 2)):
+        return base
+    w = np.broadcast_to(np.asarray(base, dtype=float), (na + nb,)).copy()
+    big, small, off = (a, b, 0) if na >= BODY_MARKERS else (b, a, na)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a marker never seen with the pair: NaN, never nearest
+        d = np.nanmean(np.linalg.norm(big[:, :, None, :] - small[:, None, :, :], axis=-1), axis=(0, 2))
+    if not np.isfinite(d).any():
+        return base
+    near = int(np.nanargmin(d))
+    share = float(w[off:off + big.shape[1]].sum())
+    w[off:off + big.shape[1]] = 0.0
+    w[off + near] = share
+    return w
 
 
 def _alpha_const(alpha, used: np.ndarray | None = None) -> float:
@@ -491,7 +531,8 @@ def jmv_joint(
         Markers (or other points rigid with the segment, such as solved
         joints) of the two segments; NaN where not seen.
     alpha : float
-        Mean-distance penalty of Q (length units); 0 for the final fit.
+        Mean-distance penalty of Q (length units), shared among the points by :func:`edge_alpha`; 0 for
+        the final fit.
     init : (F, 3) ndarray or {"auto", "mtb", "algebraic", "nearest"}, optional
         Starting joint trajectory. "mtb": the MTB closed form (needs a group
         with three non-collinear markers); "algebraic": the exact four-point
@@ -519,7 +560,7 @@ def jmv_joint(
     pts = _stack(a, b)
     F, M, _ = pts.shape
     alpha_in = float(alpha)
-    alpha = balanced_alpha(alpha_in, a.shape[1], b.shape[1])
+    alpha = edge_alpha(alpha_in, a, b)
     nan = np.full((F, 3), np.nan)
     if a.shape[1] == 0 or b.shape[1] == 0:
         return JointFit(nan, np.inf, 0, False, "a group has no markers")
@@ -743,7 +784,7 @@ def jmv_joint_long(
     start = np.stack([np.interp(fr, idx[good], fit.centre[good, k]) for k in range(3)], axis=1)
     pts = _stack(a, b)
     # the joint sits at rho = dbar - alpha / 2 from each point in Kirk's cost (the module notes)
-    centre = fixed_radius_centres(pts, fit.radii - balanced_alpha(alpha, a.shape[1], b.shape[1]) / 2.0, start)
+    centre = fixed_radius_centres(pts, fit.radii - edge_alpha(alpha, a, b) / 2.0, start)
     centre[idx[good]] = fit.centre[good]
     return JointFit(centre, fit.cost, fit.n_iter, fit.ok, fit.reason, None, fit.radii)
 

@@ -40,7 +40,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 15
+VERSION = 16
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000

@@ -22,7 +22,7 @@ from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 19
+VERSION = 20
 
 
 @dataclass(frozen=True)
@@ -192,6 +192,12 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                     # starts 154 and 79 mm apart, 0.01 % apart in residual: the refinement that holds
                     # them holds them where the start had them)
                     win = 1 if ca > cb else 0
+                elif b is not None and abs(b - a) <= START_TIE * min(a, b) and (
+                        (ua := unlike_limb_bones(one[1])) != (ub := unlike_limb_bones(two[1]))):
+                    # ... or the start whose like limbs' bones are alike: a real walk's two starts 0.3 % apart,
+                    # the one of lower residual with its right thigh 323 mm against the left's 469 (two bones
+                    # of the legs more than 20 % apart, none in the other)
+                    win = 1 if ua > ub else 0
                 else:
                     win = 1 if b is not None and b < a else 0
                 st, part, hold = (one, two)[win]
@@ -392,6 +398,26 @@ def collapsed_pairs(skel: Skeleton, frac: float = COLLAPSED) -> list[int]:
         if float(np.linalg.norm(skel.origin[a] - skel.origin[b])) < frac * float(np.linalg.norm(ca - cb)):
             out |= {a, b}
     return sorted(out)
+
+
+def unlike_limb_bones(skel: Skeleton, tol: float = 0.2) -> int:
+    """How many bones of like limbs (two children of one segment that are chains of as many segments, two or
+    more: two legs, two arms) differ by more than ``tol`` of the shorter, compared segment for segment down the
+    chains (the ``limb_asymmetry`` check's rule, on the tree's shape alone)."""
+    from ..checks import limb_chains, like_chains
+
+    parent = np.asarray(skel.parent)
+    n = 0
+    for a, b in like_chains(parent):
+        for s_a, s_b in zip(limb_chains(parent, a), limb_chains(parent, b)):
+            ka, kb = np.flatnonzero(parent == s_a), np.flatnonzero(parent == s_b)
+            if ka.size != 1 or kb.size != 1:
+                continue  # a limb's end: no bone to the next joint
+            la = float(np.linalg.norm(skel.origin[ka[0]] - skel.origin[s_a]))
+            lb = float(np.linalg.norm(skel.origin[kb[0]] - skel.origin[s_b]))
+            if min(la, lb) > 0 and max(la, lb) > (1.0 + tol) * min(la, lb):
+                n += 1
+    return n
 
 
 def implausible_joints(skel: Skeleton, far: float, outside: float) -> list[int]:
