@@ -404,18 +404,20 @@ def test_two_marker_segment_whose_joints_are_never_seen_together_still_gets_a_sh
 def test_distance_penalty_shared_per_segment_puts_gait_hips_nearer_the_truth(monkeypatch):
     """Realistic gait marker set, walking: a hip joins a four-marker pelvis and a two-marker thigh, and
     the walk fixes it poorly along the flexion axis, where the distance penalty decides. Kirk's
-    penalty, per marker, pulls it into the pelvis; shared half and half between the two segments it
-    sits nearer the truth, hip by hip, on three seeds."""
+    penalty, per marker, pulls it into the pelvis; shared half and half between the two segments, the
+    pelvis's half on its marker nearest the thigh, it sits nearer the truth, hip by hip, on three seeds."""
     import mocapskel.solvers.jmv as jmv_mod
     import mocapskel.solvers.mtb as mtb_mod
     from mocapskel.synth.presets import realistic
 
-    shared = jmv_mod.balanced_alpha
+    shared, edge = jmv_mod.balanced_alpha, jmv_mod.edge_alpha
+    per_marker = lambda alpha, n_a, n_b: float(alpha)  # noqa: E731
     for seed in (1, 2, 3):
         take = make(realistic(seed=seed, frames=600, motion="walk", markerset="gait"))
         errs = []
-        for how in (shared, lambda alpha, n_a, n_b: float(alpha)):
+        for how, at_edge in ((shared, edge), (per_marker, lambda alpha, a, b: float(alpha))):
             monkeypatch.setattr(jmv_mod, "balanced_alpha", how)
+            monkeypatch.setattr(jmv_mod, "edge_alpha", at_edge)
             monkeypatch.setattr(mtb_mod, "balanced_alpha", how)
             joints = pipeline.run_until(take.markers, "joints", pipeline.make_params(up="z", units="mm")).artifact
             each = evaluate.score_joints(joints, take.truth).joint_rms_each
