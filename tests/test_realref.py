@@ -271,6 +271,17 @@ def test_cmu_marker_set_head_hangs_on_the_thorax(path: str) -> None:
     assert nbrs and all(thorax & set(names[s]) for s in nbrs), [names[s] for s in nbrs]
 
 
+def _fit_report(rel: str, tmp_path: Path, what: str) -> dict:
+    """The report of ``mocapskel fit`` on a take of the real-data folder (skipped, saying so, without it)."""
+    p = REALDATA / rel
+    if not p.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {p} — {what} did NOT run")
+    rep = tmp_path / "r.json"
+    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--no-cache", "-q", "--report", str(rep)])
+    assert r.exit_code == 0, r.stderr
+    return json.loads(rep.read_text())
+
+
 @pytest.mark.parametrize("rel,what,how", [
     # the right foot split in two (rigid plates on the shank: the foot's own flexion of 1.4-2.5 mm is above
     # the take's tolerance), a rear-foot bone of 487 mm where the left foot's is 153
@@ -282,13 +293,7 @@ def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: 
     """A tree that is a person's but for its two legs (or arms) of unequal length or of unequal numbers of
     segments is not named as a person, and was written with no warning: a skeleton no person has. Said now
     (``limb_asymmetry``), naming the two limbs."""
-    p = REALDATA / rel
-    if not p.is_file():
-        pytest.skip(f"REAL DATA NOT FOUND at {p} — the unlike-limbs test did NOT run")
-    rep = tmp_path / "r.json"
-    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--no-cache", "-q", "--report", str(rep)])
-    assert r.exit_code == 0, r.stderr
-    report = json.loads(rep.read_text())
+    report = _fit_report(rel, tmp_path, "the unlike-limbs test")
     assert "not recognised as a person" in report["export"]["names"]["note"]
     found = [c for c in report["checks"] if c["check"] == "limb_asymmetry" and f"the two {what}" in c["message"]]
     assert len(found) == 1 and how in found[0]["message"], report["checks"]
@@ -313,13 +318,7 @@ def test_a_walks_legs_keep_their_like_bones_when_two_starts_tie(tmp_path: Path) 
     do not tell apart; the lower one had the right thigh (one marker) 323 mm long against the left's 469.
     Between starts that tie, the one whose like limbs' bones are alike wins: the thighs within a fifth of each
     other, and no limb_asymmetry said of them."""
-    p = REALDATA / "cmu/07_01.c3d"
-    if not p.is_file():
-        pytest.skip(f"REAL DATA NOT FOUND at {p} — the tied-starts test did NOT run")
-    rep = tmp_path / "r.json"
-    r = CliRunner().invoke(cli, ["fit", str(p), "-o", str(tmp_path / "o.bvh"), "--no-cache", "-q", "--report", str(rep)])
-    assert r.exit_code == 0, r.stderr
-    report = json.loads(rep.read_text())
+    report = _fit_report("cmu/07_01.c3d", tmp_path, "the tied-starts test")
     segs = {x["name"]: x["markers"] for x in report["segments"]}
     length = {b["segment"]: b["length_mm"] for b in report["bones"]}
     thighs = [n for n, m in segs.items() if {"LTHI"} <= set(m) or {"RTHI"} <= set(m)]
