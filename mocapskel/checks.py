@@ -65,7 +65,8 @@ import numpy as np
 from .artifacts import Motion
 from .kinematics import segment_origins
 
-__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text", "like_chains", "limb_chains"]
+__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text", "like_chains", "limb_chains",
+           "like_limb_pairs", "unlike_bones"]
 
 
 @dataclass(frozen=True)
@@ -263,8 +264,11 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    f"frames (up to {rel[:, s].max():.0f} degrees) while its markers hardly move",
                                    tuple(bad.tolist())))
 
-    out.extend(_limb_asymmetry(motion, limits.asymmetry))
-    out.extend(_limb_mirror(motion, limits.mirror))
+    from .naming import recognise
+
+    naming = recognise(sk, motion)  # a person's, or why not (see mocapskel.naming)
+    out.extend(_limb_asymmetry(motion, limits.asymmetry, naming))
+    out.extend(_limb_mirror(motion, limits.mirror, naming))
 
     for s, note in (joint_notes or {}).items():
         jn = _joint_name(names, parent, s)
@@ -272,7 +276,30 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
     return out
 
 
-def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
+def like_limb_pairs(parent: np.ndarray) -> list[tuple[int, int, int]]:
+    """``(segment, its like, k)`` down every pair of like limbs (:func:`like_chains`), ``k`` counting from the
+    chains' first segments."""
+    return [(s_a, s_b, k) for a, b in like_chains(parent)
+            for k, (s_a, s_b) in enumerate(zip(limb_chains(parent, a), limb_chains(parent, b)))]
+
+
+def unlike_bones(skel, pairs: list[tuple[int, int]], tol: float) -> list[tuple[int, int, float, float]]:
+    """Of the segment pairs ``(a, b)``, those whose bones (each to its one child joint; a limb's end has none)
+    differ by more than ``tol`` of the shorter: ``(a, b, length of a's, length of b's)``."""
+    parent = np.asarray(skel.parent)
+    off = np.linalg.norm(skel.offset, axis=1)
+    out = []
+    for a, b in pairs:
+        kids = [np.flatnonzero(parent == s) for s in (a, b)]
+        if any(k.size != 1 for k in kids):
+            continue  # a limb's end: no bone to the next joint
+        la, lb = float(off[kids[0][0]]), float(off[kids[1][0]])
+        if la > 0 and lb > 0 and max(la, lb) > (1.0 + tol) * min(la, lb):
+            out.append((a, b, la, lb))
+    return out
+
+
+def _limb_asymmetry(motion: Motion, tol: float, naming) -> list[Finding]:
     """The bones of a person's left and right limbs that differ by more than ``tol`` (a fraction); in a
     skeleton not recognised as a person (a lower-body gait set), those of like limbs: two children of
     one segment whose subtrees have the same shape, each a chain of two segments or more (two legs on
@@ -280,31 +307,21 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
     two legs or its two arms, those two when their lengths from the trunk differ by more than half or their
     numbers of segments differ (a real stair descent's right foot split in two, a 487 mm rear-foot bone,
     the legs 1087 and 1644 mm)."""
-    from .naming import recognise
-
     sk = motion.skeleton
     parent = np.asarray(sk.parent)
-    off = np.linalg.norm(sk.offset, axis=1)
-    naming = recognise(sk, motion)
-    pairs = []  # (left segment, right segment, what they are)
+    what = {}  # (left segment, right segment) -> (what they are, kind)
     if isinstance(naming, str):  # not a person: like limbs by the tree's shape alone
-        for a, b in like_chains(parent):
-            for k, (s_a, s_b) in enumerate(zip(limb_chains(parent, a), limb_chains(parent, b))):
-                nth = ("first", "second", "third", "fourth")[k] if k < 4 else f"{k + 1}th"
-                pairs.append((s_a, s_b, f"like limbs' {nth} segments", "like"))
+        for s_a, s_b, k in like_limb_pairs(parent):
+            nth = ("first", "second", "third", "fourth")[k] if k < 4 else f"{k + 1}th"
+            what[s_a, s_b] = (f"like limbs' {nth} segments", "like")
     else:
         role = {n: s for s, n in enumerate(naming.names)}
         for left, s_l in role.items():
             if left.startswith("Left") and "Right" + left[4:] in role:
-                pairs.append((s_l, role["Right" + left[4:]], f"left and right {left[4:]}", "person"))
+                what[s_l, role["Right" + left[4:]]] = (f"left and right {left[4:]}", "person")
     out = []
-    for s_l, s_r, part, kind in pairs:
-        kids = [np.flatnonzero(parent == s) for s in (s_l, s_r)]
-        if any(k.size != 1 for k in kids):
-            continue  # a limb's end: no bone to the next joint
-        la, lb = float(off[kids[0][0]]), float(off[kids[1][0]])
-        if not (la > 0 and lb > 0) or max(la, lb) <= (1.0 + tol) * min(la, lb):
-            continue
+    for s_l, s_r, la, lb in unlike_bones(sk, list(what), tol):
+        part, kind = what[s_l, s_r]
         who = "a person's differ by a few per cent" if kind == "person" else (
             "two legs or two arms differ by a few per cent; another machine's like limbs may not")
         out.append(Finding("limb_asymmetry", f"{sk.names[s_l]}/{sk.names[s_r]}",
@@ -329,7 +346,7 @@ def _limb_asymmetry(motion: Motion, tol: float) -> list[Finding]:
     return out
 
 
-def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
+def _limb_mirror(motion: Motion, tol: float, naming) -> list[Finding]:
     """The hips and the shoulders of a person whose mid-plane misses a midline joint of the segment they hang
     from by more than ``tol`` of their spacing (rest pose; rigid, so every frame).
 
@@ -337,10 +354,7 @@ def _limb_mirror(motion: Motion, tol: float) -> list[Finding]:
     when they hang from one segment. Its midline joints: that segment's own joint with its parent (none for the
     root, whose origin the fit may put anywhere) and its other children but limbs (the spine on the pelvis; the
     neck or head on the chest)."""
-    from .naming import recognise
-
     sk = motion.skeleton
-    naming = recognise(sk, motion)
     if isinstance(naming, str):
         return []
     parent = np.asarray(sk.parent)

@@ -404,20 +404,9 @@ def unlike_limb_bones(skel: Skeleton, tol: float = 0.2) -> int:
     """How many bones of like limbs (two children of one segment that are chains of as many segments, two or
     more: two legs, two arms) differ by more than ``tol`` of the shorter, compared segment for segment down the
     chains (the ``limb_asymmetry`` check's rule, on the tree's shape alone)."""
-    from ..checks import limb_chains, like_chains
+    from ..checks import like_limb_pairs, unlike_bones
 
-    parent = np.asarray(skel.parent)
-    n = 0
-    for a, b in like_chains(parent):
-        for s_a, s_b in zip(limb_chains(parent, a), limb_chains(parent, b)):
-            ka, kb = np.flatnonzero(parent == s_a), np.flatnonzero(parent == s_b)
-            if ka.size != 1 or kb.size != 1:
-                continue  # a limb's end: no bone to the next joint
-            la = float(np.linalg.norm(skel.origin[ka[0]] - skel.origin[s_a]))
-            lb = float(np.linalg.norm(skel.origin[kb[0]] - skel.origin[s_b]))
-            if min(la, lb) > 0 and max(la, lb) > (1.0 + tol) * min(la, lb):
-                n += 1
-    return n
+    return len(unlike_bones(skel, [(a, b) for a, b, _ in like_limb_pairs(np.asarray(skel.parent))], tol))
 
 
 def implausible_joints(skel: Skeleton, far: float, outside: float) -> list[int]:
