@@ -783,8 +783,9 @@ def jmv_joint_long(
     fr = np.arange(F)
     start = np.stack([np.interp(fr, idx[good], fit.centre[good, k]) for k in range(3)], axis=1)
     pts = _stack(a, b)
-    # the joint sits at rho = dbar - alpha / 2 from each point in Kirk's cost (the module notes)
-    centre = fixed_radius_centres(pts, fit.radii - edge_alpha(alpha, a, b) / 2.0, start)
+    # the joint sits at rho = dbar - alpha / 2 from each point in Kirk's cost (the module notes), with the
+    # weights the fit had (its nearest body marker found on the same frames)
+    centre = fixed_radius_centres(pts, fit.radii - edge_alpha(alpha, a[idx], b[idx]) / 2.0, start)
     centre[idx[good]] = fit.centre[good]
     return JointFit(centre, fit.cost, fit.n_iter, fit.ok, fit.reason, None, fit.radii)
 
