@@ -27,7 +27,8 @@ centre from its segments' poses. The diagnostics (turn check, residual) use
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import warnings as pywarnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,7 +41,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 16
+VERSION = 17
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -75,6 +76,11 @@ class Params:
     """JMV joints of longer takes are fitted on this many frames spread over the take,
     every frame then placed from the fitted radii (``jmv_joint_long``); Hang's framework's JMV
     joints likewise."""
+    stray_far: float = 0.5
+    """A one-marker segment at a leaf of the tree whose joint lies farther than this fraction of the
+    subject's marker extent from its marker and from every marker of its neighbour, and whose marker
+    moves, rides on nothing of the subject (a sync light, a ball): it is left out of the skeleton
+    (see :func:`leave_out_strays`); 0: kept. The bar of the output check ``joint_far``."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -263,8 +269,9 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         alt = centres.copy()
         alt[:, jmv_placed] = tree.centres[:, jmv_placed]
         info["alt_start"] = [int(e) for e in jmv_placed]
-    return Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
-                  alt_centres=alt)
+    out = Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
+                 alt_centres=alt)
+    return leave_out_strays(out, params.stray_far) if params.stray_far else out
 
 
 def _columns(pts: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -454,3 +461,107 @@ def along_axis_sigma(fit) -> float:
     if not (s_min > 0) or fit.n_frames < 1:
         return float("inf")
     return float(fit.rms) / (s_min * np.sqrt(fit.n_frames))
+
+
+def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[int, int, float]]:
+    """One-marker leaf segments that ride on nothing of the subject: (segment, its edge, the joint's
+    distance from the nearest marker of its two segments, mm).
+
+    Such a marker (a sync light, a ball, a marker knocked off and moving by itself) still gets a joint:
+    some point keeps its distance to it least badly, but one far from everything (a real take's sync
+    marker: 2.3 m from it and from the forearm it was hung on, more than twice the subject's extent).
+    Far: the joint's median distance over the frames from the leaf's marker and from every marker of
+    its neighbour exceeds ``far`` times the subject's marker extent (the largest mean distance between
+    two of the other segments' markers). A marker that stands still (a robot's base on its table) is
+    the lab's own frame, not a stray, and stays.
+    """
+    topo = joints.topology
+    seg = topo.segments
+    S = seg.n_segments
+    edges = topo.edges
+    if S < 3 or not far:
+        return []
+    pts = seg.markers.points
+    use = spread_frames(pts.shape[0], frames)
+    P = pts[use]
+    deg = np.bincount(edges.ravel(), minlength=S)
+    leaves = [s_ for s_ in range(S) if deg[s_] == 1 and seg.members(s_).size == 1]
+    if not leaves:
+        return []
+    rest = np.flatnonzero((seg.group >= 0) & ~np.isin(seg.group, leaves))
+    if rest.size < 2:
+        return []
+    tot = np.zeros((rest.size, rest.size))
+    cnt = np.zeros((rest.size, rest.size))
+    for q in P[:: max(1, P.shape[0] // 50), rest]:  # the mean distance of every pair, on 50 frames
+        d = np.sqrt(((q[:, None] - q[None]) ** 2).sum(-1))
+        ok = np.isfinite(d)
+        tot[ok] += d[ok]
+        cnt += ok
+    if not cnt.any():
+        return []
+    extent = float((tot[cnt > 0] / cnt[cnt > 0]).max())
+    lim = far * extent
+    out = []
+    for s_ in leaves:
+        m = int(seg.members(s_)[0])
+        x = P[:, m]
+        seen = np.isfinite(x).all(-1)
+        if seen.sum() < 2:
+            continue
+        with pywarnings.catch_warnings():
+            pywarnings.simplefilter("ignore", RuntimeWarning)
+            still = float(np.sqrt(np.nanmean(((x[seen] - np.nanmean(x[seen], axis=0)) ** 2).sum(-1))))
+        if not still > seg.info.get("rigid_tolerance_mm", 0.0):
+            continue  # it stands still: the lab's frame
+        e = int(np.flatnonzero((edges == s_).any(axis=1))[0])
+        other = int(edges[e][0] if edges[e][1] == s_ else edges[e][1])
+        c = joints.centres[use, e]
+        with pywarnings.catch_warnings():
+            pywarnings.simplefilter("ignore", RuntimeWarning)
+            own = np.nanmedian(np.linalg.norm(c - x, axis=-1))
+            nb = np.nanmedian(np.nanmin(np.linalg.norm(P[:, seg.members(other)] - c[:, None], axis=-1), axis=1))
+        if np.isfinite(own) and np.isfinite(nb) and min(own, nb) > lim:
+            out.append((s_, e, float(min(own, nb))))
+    return out
+
+
+def leave_out_strays(joints: Joints, far: float) -> Joints:
+    """``joints`` without the stray one-marker leaves of :func:`stray_leaves`: their markers left out of
+    the segments (as markers seen too rarely are), their joints out of the tree, the rest renumbered."""
+    strays = stray_leaves(joints, far)
+    if not strays:
+        return joints
+    topo = joints.topology
+    seg = topo.segments
+    labels = seg.markers.labels
+    names = _segment_labels(seg)
+    drop = sorted(s_ for s_, _, _ in strays)
+    keep_s = np.array([s_ for s_ in range(seg.n_segments) if s_ not in drop])
+    new_of = np.full(seg.n_segments, -1, dtype=int)
+    new_of[keep_s] = np.arange(keep_s.size)
+    group = np.where(seg.group >= 0, new_of[np.maximum(seg.group, 0)], -1)
+    said = []
+    for s_, e, dist in strays:
+        m = labels[int(seg.members(s_)[0])]
+        other = int(topo.edges[e][0] if topo.edges[e][1] == s_ else topo.edges[e][1])
+        said.append(f"marker {m} left out of the skeleton: it rides on nothing of the subject — its best joint with"
+                    f" segment {names[other]} lies {dist:.0f} mm from it and from that segment's markers (more than"
+                    f" {far:g} of the subject's marker extent): a marker on a prop, a sync device or a loose marker")
+    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + [labels[int(seg.members(s_)[0])] for s_ in drop],
+                    strays=[labels[int(seg.members(s_)[0])] for s_ in drop], n_segments=int(keep_s.size))
+    new_seg = replace(seg, group=group, info=seg_info)
+    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}])
+    edges = new_of[topo.edges[keep_e]]
+    root = int(new_of[topo.root]) if topo.root not in drop else int(edges[0][0])
+    new_topo = replace(topo, segments=new_seg, edges=edges, cost=topo.cost[keep_e],
+                       pair_cost=topo.pair_cost[np.ix_(keep_s, keep_s)], root=root)
+    info = dict(joints.info, per_joint=[joints.info["per_joint"][e] for e in keep_e],
+                warnings=list(joints.info.get("warnings", [])) + said)
+    if "alt_start" in info:
+        old_to_new = {int(e): i for i, e in enumerate(keep_e)}
+        info["alt_start"] = [old_to_new[e] for e in info["alt_start"] if e in old_to_new]
+    alt = None if joints.alt_centres is None else joints.alt_centres[:, keep_e]
+    return replace(joints, topology=new_topo, centres=joints.centres[:, keep_e],
+                   method=tuple(joints.method[e] for e in keep_e), residual=joints.residual[keep_e],
+                   info=info, alt_centres=alt)
