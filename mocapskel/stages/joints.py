@@ -550,6 +550,8 @@ def leave_out_strays(joints: Joints, far: float) -> Joints:
                     f" {far:g} of the subject's marker extent): a marker on a prop, a sync device or a loose marker")
     seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + [labels[int(seg.members(s_)[0])] for s_ in drop],
                     strays=[labels[int(seg.members(s_)[0])] for s_ in drop], n_segments=int(keep_s.size))
+    if isinstance(seg.info.get("groups"), list) and len(seg.info["groups"]) == seg.n_segments:
+        seg_info["groups"] = [g for s_, g in enumerate(seg.info["groups"]) if s_ not in drop]
     new_seg = replace(seg, group=group, info=seg_info)
     keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}])
     edges = new_of[topo.edges[keep_e]]
