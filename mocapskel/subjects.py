@@ -14,7 +14,8 @@ between groups, not a long bone, and free of the subjects' scale — provided
 every group carries :data:`MIN_MARKERS` markers and every two groups move
 relative to each other (their cross distances vary by more than
 :data:`MOVE_MM`: a rigid object in two marker clusters stays one). Of several
-such cuts, the one at the largest ratio. Frames
+such cuts, the one at the largest ratio. A group whose own markers all keep their distances
+is a rigid object (a box, a prop), not a subject: it goes with the subject nearest to it. Frames
 are sampled and the pairwise distances computed in blocks, so memory stays
 small for hundreds of labels.
 """
@@ -115,12 +116,32 @@ def split_subjects(markers: Markers) -> list[np.ndarray] | None:
     if best is None:
         return None
     parts = best[1]
+    # a group whose markers all keep their distances is one rigid object (a box, a prop), not a subject:
+    # it goes with the subject nearest to it (the stages after leave it out if nothing ties it to that one)
+    moves = [p for p in parts if _articulated(dstd[np.ix_(used[p], used[p])])]
+    if len(moves) < 2:
+        return None
+    for p in parts:
+        if not any(p is q for q in moves):
+            near = [np.nanmin(dmax[np.ix_(used[p], used[q])]) if np.isfinite(dmax[np.ix_(used[p], used[q])]).any()
+                    else np.inf for q in moves]
+            k = int(np.argmin(near))
+            moves[k] = np.concatenate([moves[k], p])
+    parts = moves
     groups = [np.sort(used[p]) for p in parts]
     groups.sort(key=lambda g: int(g[0]))
     rest = np.setdiff1d(np.arange(M), used)
     if rest.size:
         groups[0] = np.sort(np.concatenate([groups[0], rest]))
     return groups
+
+
+def _articulated(std: np.ndarray) -> bool:
+    """Whether a group's markers move against each other (a subject) rather than as one rigid object: some of
+    their distances (the top 5 %) vary by more than :data:`MOVE_MM` (std)."""
+    v = std[~np.eye(std.shape[0], dtype=bool)]
+    v = v[np.isfinite(v)]
+    return bool(v.size) and float(np.percentile(v, 95)) > MOVE_MM
 
 
 def single_linkage(D: np.ndarray) -> np.ndarray:

@@ -88,6 +88,36 @@ def test_a_rigid_object_in_two_far_clusters_is_not_two_subjects() -> None:
     assert split_subjects(Markers(points=pts, labels=tuple(f"R{i}" for i in range(10)), rate=100.0)) is None
 
 
+def _carried_box(frames: int, seed: int, at: np.ndarray) -> np.ndarray:
+    """Four markers of a rigid box turning and drifting on its own around ``at`` (F, 4, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    corners = np.array([[150.0, 100.0, 75.0], [-150.0, 100.0, -75.0], [150.0, -100.0, -75.0], [-150.0, -100.0, 75.0]])
+    t = np.arange(frames) / 100.0
+    R = Rotation.from_rotvec(np.stack([0.4 * np.sin(t), 0.3 * np.cos(1.3 * t), 0.5 * t], 1)).as_matrix()
+    path = at + np.stack([400 * np.sin(0.7 * t), 300 * np.cos(0.5 * t), 200 * np.sin(1.1 * t)], 1)
+    return path[:, None] + np.einsum("fij,mj->fmi", R, corners) + rng.normal(0, 0.3, (frames, 4, 3))
+
+
+def test_a_rigid_object_apart_from_the_subjects_is_no_subject(two) -> None:
+    """A box moving on its own 2 m from both subjects: a group of its own at the cut, but one rigid body, so it
+    goes with the nearer subject (whose fit leaves it out); with one subject the take is not split at all."""
+    d, takes = two
+    mk = read_markers(d / "two.c3d")
+    box = _carried_box(mk.n_frames, 1, np.array([1500.0, 0.0, 2500.0]) + np.array([1000.0, 0.0, 0.0]))
+    with_box = replace(mk, points=np.concatenate([mk.points, box], axis=1), labels=tuple(mk.labels) + ("X1", "X2", "X3", "X4"))
+    groups = split_subjects(with_box)
+    assert groups is not None and len(groups) == 2
+    subject_of = [sorted({with_box.labels[i][0] for i in g if with_box.labels[i][0] in "AB"}) for g in groups]
+    assert subject_of == [["A"], ["B"]]
+    assert sorted(with_box.labels[i] for i in groups[1] if with_box.labels[i].startswith("X")) == ["X1", "X2", "X3", "X4"]
+    one = takes[0].markers
+    alone = replace(one, points=np.concatenate([one.points, box[: one.n_frames]], axis=1),
+                    labels=tuple(one.labels) + ("X1", "X2", "X3", "X4"))
+    assert split_subjects(alone) is None
+
+
 def test_each_subject_is_fitted_as_its_take_alone(two) -> None:
     """Every subject's joints equal those of the fit of its markers alone, and score as well against its truth."""
     d, takes = two

@@ -41,12 +41,19 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 17
+VERSION = 18
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
 
 METHODS = ("auto", "jmv", "mtb", "sphere", "score")
+
+#: A leaf is left out as riding on nothing of the subject (see :func:`stray_leaves`) only when its joint's
+#: residual exceeds this many times the take's rigid tolerance: one marker (the variation of its distance to
+#: the joint: at most 0.9 times on the real takes of the shared folders, a sync marker 2.1 times) ...
+STRAY_RESIDUAL_ONE = 1.0
+#: ... two or more (SCoRE's residual, the skin motion of both bodies in it: at most 1.6 times, a carried box 12).
+STRAY_RESIDUAL = 4.0
 
 
 @dataclass(frozen=True)
@@ -77,10 +84,10 @@ class Params:
     every frame then placed from the fitted radii (``jmv_joint_long``); Hang's framework's JMV
     joints likewise."""
     stray_far: float = 0.5
-    """A one-marker segment at a leaf of the tree whose joint lies farther than this fraction of the
-    subject's marker extent from its marker and from every marker of its neighbour, and whose marker
-    moves, rides on nothing of the subject (a sync light, a ball): it is left out of the skeleton
-    (see :func:`leave_out_strays`); 0: kept. The bar of the output check ``joint_far``."""
+    """A leaf of the tree whose joint lies farther than this fraction of the subject's marker extent from
+    its markers and from every marker of its neighbour, that moves, and (two or more markers) fits no
+    joint, rides on nothing of the subject (a sync light, a ball, a carried box): it is left out of the
+    skeleton (see :func:`stray_leaves`); 0: kept. The bar of the output check ``joint_far``."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -464,16 +471,25 @@ def along_axis_sigma(fit) -> float:
 
 
 def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[int, int, float]]:
-    """One-marker leaf segments that ride on nothing of the subject: (segment, its edge, the joint's
-    distance from the nearest marker of its two segments, mm).
+    """Leaf segments that ride on nothing of the subject: (segment, its edge, the joint's distance from
+    the nearest marker of its two segments, mm).
 
-    Such a marker (a sync light, a ball, a marker knocked off and moving by itself) still gets a joint:
-    some point keeps its distance to it least badly, but one far from everything (a real take's sync
-    marker: 2.3 m from it and from the forearm it was hung on, more than twice the subject's extent).
-    Far: the joint's median distance over the frames from the leaf's marker and from every marker of
-    its neighbour exceeds ``far`` times the subject's marker extent (the largest mean distance between
-    two of the other segments' markers). A marker that stands still (a robot's base on its table) is
-    the lab's own frame, not a stray, and stays.
+    Such a marker (a sync light, a ball, a marker knocked off and moving by itself) or object (a box the
+    subject carries) still gets a joint: the point that keeps its distances least badly, but one that
+    keeps them badly and lies far from everything (a real take's sync marker: 1.0 m from it and 1.4 m
+    from the forearm it was hung on; a carried box: 0.6 m from it and 0.9 m from the scapula). A leaf is
+    a stray when
+    - its joint's residual exceeds the take's rigid tolerance (``STRAY_RESIDUAL_ONE`` times it for one
+      marker, ``STRAY_RESIDUAL`` times for more): no point keeps its place in both bodies as a joint does;
+    - the joint's median distance over the frames from the leaf's markers and from every marker of its
+      neighbour exceeds ``far`` times the subject's marker extent without the leaf (the largest mean
+      distance between two of the other markers);
+    - it moves: a marker or object that stands still (a robot's base on its table) is the lab's own
+      frame, not a stray.
+    On 440 generated random trees of three to five links of 300 mm with one-marker leaves (a subject barely
+    two links across, its markers up to a link's length from their joints), five leaves were strays, each
+    one that the tree had hung on the wrong segment (no joint there: residual 3 to 400 times the
+    tolerance); no leaf of a right tree.
     """
     topo = joints.topology
     seg = topo.segments
@@ -481,45 +497,46 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
     edges = topo.edges
     if S < 3 or not far:
         return []
+    tau = float(seg.info.get("rigid_tolerance_mm", 0.0))
     pts = seg.markers.points
     use = spread_frames(pts.shape[0], frames)
     P = pts[use]
     deg = np.bincount(edges.ravel(), minlength=S)
-    leaves = [s_ for s_ in range(S) if deg[s_] == 1 and seg.members(s_).size == 1]
+    leaves = []
+    for s_ in np.flatnonzero(deg == 1):
+        e = int(np.flatnonzero((edges == s_).any(axis=1))[0])
+        if joints.residual[e] > (STRAY_RESIDUAL_ONE if seg.members(s_).size == 1 else STRAY_RESIDUAL) * tau:
+            leaves.append((int(s_), e))
     if not leaves:
         return []
-    rest = np.flatnonzero((seg.group >= 0) & ~np.isin(seg.group, leaves))
-    if rest.size < 2:
-        return []
-    tot = np.zeros((rest.size, rest.size))
-    cnt = np.zeros((rest.size, rest.size))
-    for q in P[:: max(1, P.shape[0] // 50), rest]:  # the mean distance of every pair, on 50 frames
+    on = np.flatnonzero(seg.group >= 0)
+    tot = np.zeros((on.size, on.size))
+    cnt = np.zeros((on.size, on.size))
+    for q in P[:: max(1, P.shape[0] // 50), on]:  # the mean distance of every pair, on 50 frames
         d = np.sqrt(((q[:, None] - q[None]) ** 2).sum(-1))
         ok = np.isfinite(d)
         tot[ok] += d[ok]
         cnt += ok
-    if not cnt.any():
-        return []
-    extent = float((tot[cnt > 0] / cnt[cnt > 0]).max())
-    lim = far * extent
+    mean_d = np.where(cnt > 0, tot / np.maximum(cnt, 1), 0.0)
     out = []
-    for s_ in leaves:
-        m = int(seg.members(s_)[0])
-        x = P[:, m]
-        seen = np.isfinite(x).all(-1)
-        if seen.sum() < 2:
+    for s_, e in leaves:
+        others = seg.group[on] != s_
+        if others.sum() < 2 or S - 1 - len(out) < 2:
             continue
+        lim = far * float(mean_d[np.ix_(others, others)].max())  # the subject's extent without this leaf
+        x = P[:, seg.members(s_)]  # (n, k, 3)
         with pywarnings.catch_warnings():
             pywarnings.simplefilter("ignore", RuntimeWarning)
-            still = float(np.sqrt(np.nanmean(((x[seen] - np.nanmean(x[seen], axis=0)) ** 2).sum(-1))))
-        if not still > seg.info.get("rigid_tolerance_mm", 0.0):
-            continue  # it stands still: the lab's frame
-        e = int(np.flatnonzero((edges == s_).any(axis=1))[0])
-        other = int(edges[e][0] if edges[e][1] == s_ else edges[e][1])
-        c = joints.centres[use, e]
-        with pywarnings.catch_warnings():
-            pywarnings.simplefilter("ignore", RuntimeWarning)
-            own = np.nanmedian(np.linalg.norm(c - x, axis=-1))
+            mid = np.nanmean(x, axis=1)
+            seen = np.isfinite(mid).all(-1)
+            if seen.sum() < 2:
+                continue
+            still = float(np.sqrt(np.mean(((mid[seen] - mid[seen].mean(axis=0)) ** 2).sum(-1))))
+            if not still > tau:
+                continue  # it stands still: the lab's frame
+            other = int(edges[e][0] if edges[e][1] == s_ else edges[e][1])
+            c = joints.centres[use, e]
+            own = np.nanmedian(np.nanmin(np.linalg.norm(x - c[:, None], axis=-1), axis=1))
             nb = np.nanmedian(np.nanmin(np.linalg.norm(P[:, seg.members(other)] - c[:, None], axis=-1), axis=1))
         if np.isfinite(own) and np.isfinite(nb) and min(own, nb) > lim:
             out.append((s_, e, float(min(own, nb))))
@@ -527,10 +544,10 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
 
 
 def leave_out_strays(joints: Joints, far: float) -> Joints:
-    """``joints`` without the stray one-marker leaves of :func:`stray_leaves`: their markers left out of
+    """``joints`` without the stray leaves of :func:`stray_leaves`: their markers left out of
     the segments (as markers seen too rarely are), their joints out of the tree, the rest renumbered."""
     strays = stray_leaves(joints, far)
-    if not strays:
+    if not strays or joints.topology.segments.n_segments - len(strays) < 2:
         return joints
     topo = joints.topology
     seg = topo.segments
@@ -543,17 +560,20 @@ def leave_out_strays(joints: Joints, far: float) -> Joints:
     group = np.where(seg.group >= 0, new_of[np.maximum(seg.group, 0)], -1)
     said = []
     for s_, e, dist in strays:
-        m = labels[int(seg.members(s_)[0])]
+        ms = [labels[int(i)] for i in seg.members(s_)]
         other = int(topo.edges[e][0] if topo.edges[e][1] == s_ else topo.edges[e][1])
-        said.append(f"marker {m} left out of the skeleton: it rides on nothing of the subject — its best joint with"
-                    f" segment {names[other]} lies {dist:.0f} mm from it and from that segment's markers (more than"
-                    f" {far:g} of the subject's marker extent): a marker on a prop, a sync device or a loose marker")
-    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + [labels[int(seg.members(s_)[0])] for s_ in drop],
-                    strays=[labels[int(seg.members(s_)[0])] for s_ in drop], n_segments=int(keep_s.size))
+        what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
+        fit = "" if len(ms) == 1 else f" fits its markers only to {joints.residual[e]:.0f} mm and"
+        said.append(f"{what} left out of the skeleton: it rides on nothing of the subject — its best joint with"
+                    f" segment {names[other]}{fit} lies {dist:.0f} mm from {'it' if len(ms) == 1 else 'them'} and"
+                    f" from that segment's markers (more than {far:g} of the subject's marker extent): a marker on a"
+                    " prop or a sync device, a loose marker, an object the subject handles")
+    gone = [labels[int(i)] for s_ in drop for i in seg.members(s_)]
+    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + gone, strays=gone, n_segments=int(keep_s.size))
     if isinstance(seg.info.get("groups"), list) and len(seg.info["groups"]) == seg.n_segments:
         seg_info["groups"] = [g for s_, g in enumerate(seg.info["groups"]) if s_ not in drop]
     new_seg = replace(seg, group=group, info=seg_info)
-    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}])
+    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}], dtype=int)
     edges = new_of[topo.edges[keep_e]]
     root = int(new_of[topo.root]) if topo.root not in drop else int(edges[0][0])
     new_topo = replace(topo, segments=new_seg, edges=edges, cost=topo.cost[keep_e],
