@@ -306,3 +306,43 @@ def test_a_lone_marker_is_absorbed_by_the_group_nearest_in_space():
     std[4, 2:4] = std[2:4, 4] = 3.0
     assert absorb_lone_markers(std, mean_d, lab, 6.0, 600.0)[0].tolist() == [0, 0, 1, 1, 0]
     assert absorb_lone_markers(std, mean_d, lab, 4.0, 600.0)[0].tolist() == [0, 0, 1, 1, 2]  # not the far one
+
+
+def _on_joint_case(between: float, far: float = 1.0):
+    """Markers 0-2 (group A), 3-5 (group B) and 6 alone; 6's distance stds: 3 mm to A, 4 mm to B; A to B
+    ``between``; mean distances: 6 is 150 mm from A and 170 from B, A and B 300 mm apart (``far`` scales 6's)."""
+    std = np.full((7, 7), 1.0)
+    std[np.ix_([0, 1, 2], [3, 4, 5])] = std[np.ix_([3, 4, 5], [0, 1, 2])] = between
+    std[6, :3] = std[:3, 6] = 3.0
+    std[6, 3:6] = std[3:6, 6] = 4.0
+    np.fill_diagonal(std, 0.0)
+    d = np.full((7, 7), 50.0)
+    d[np.ix_([0, 1, 2], [3, 4, 5])] = d[np.ix_([3, 4, 5], [0, 1, 2])] = 300.0
+    d[6, :3] = d[:3, 6] = 150.0 * far
+    d[6, 3:6] = d[3:6, 6] = 170.0 * far
+    np.fill_diagonal(d, 0.0)
+    return std, d, np.array([0, 0, 0, 1, 1, 1, 2])
+
+
+def test_a_lone_marker_on_the_joint_of_two_groups_joins_the_nearer_in_motion():
+    std, d, lab = _on_joint_case(between=30.0)
+    new, moves = segment.join_markers_on_joints(std, d, lab)
+    assert new.tolist() == [0, 0, 0, 1, 1, 1, 0] and moves == [(6, "on a joint")]
+    # the groups hardly move against each other: its distances say nothing of a joint
+    assert segment.join_markers_on_joints(*_on_joint_case(between=10.0))[0].tolist() == lab.tolist()
+    # not between them: far from both, any marker's distances vary little
+    assert segment.join_markers_on_joints(*_on_joint_case(between=30.0, far=3.0))[0].tolist() == lab.tolist()
+
+
+def test_real_epicondyle_between_arm_and_forearm_clusters_joins_the_arm():
+    """A wheelchair racer's right lateral epicondyle (0.16 of the arm-forearm distance std against either) was a
+    one-marker segment between the arm's and the forearm's clusters, joined to both."""
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "kineticstoolkit" / "racing_full.c3d"
+    if not src.is_file():
+        pytest.skip(f"REAL DATA NOT FOUND at {src.parent.parent} — the real on-joint marker test did NOT run")
+    seg = pipeline.run_until(src, "segment").artifact
+    g = {lab: int(seg.group[i]) for i, lab in enumerate(seg.markers.labels)}
+    assert g["LateralEpicondyleR"] == g["ArmR1"] == g["ArmR2"] == g["ArmR3"]
+    assert ["LateralEpicondyleR", "on a joint"] in [list(m) for m in seg.info["moved"]]
