@@ -451,6 +451,16 @@ def split_nonrigid(points: np.ndarray, std: np.ndarray, labels: np.ndarray, tau:
     return by_first_marker(lab), splits
 
 
+def _other_groups(lab: np.ndarray, m: int) -> list[tuple[int, np.ndarray]]:
+    """The groups of two or more markers other than marker ``m``'s: [(group, its markers)]."""
+    out = []
+    for g in np.unique(lab):
+        mem = np.flatnonzero(lab == g)
+        if g != lab[m] and mem.size > 1:
+            out.append((int(g), mem))
+    return out
+
+
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
                         reach: float, nearest: bool = False) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Each marker alone in its group that varies against its nearest group of several markers (nearest
@@ -466,10 +476,8 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
     sizes = np.bincount(lab)
     for m in [i for i in range(M) if sizes[lab[i]] == 1]:
         costs = []
-        for g in np.unique(lab):
-            mem = np.flatnonzero(lab == g)
-            mem = mem[mem != m]
-            if g != lab[m] and mem.size > 1 and (near[m, mem].any() if nearest else near[m, mem].all()):
+        for g, mem in _other_groups(lab, m):
+            if near[m, mem].any() if nearest else near[m, mem].all():
                 costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g),
                               float(np.nan_to_num(mean_d[m, mem], nan=np.inf).mean())))
         if costs:
@@ -510,12 +518,7 @@ def join_markers_on_joints(std: np.ndarray, mean_d: np.ndarray,
     moves: list[tuple[int, str]] = []
     sizes = np.bincount(lab)
     for m in [i for i in range(M) if sizes[lab[i]] == 1]:
-        rows = []
-        for g in np.unique(lab):
-            mem = np.flatnonzero(lab == g)
-            if g == lab[m] or mem.size < 2:
-                continue
-            rows.append((float(S[m, mem].mean()), int(g), mem))
+        rows = [(float(S[m, mem].mean()), g, mem) for g, mem in _other_groups(lab, m)]
         if len(rows) < 2:
             continue
         rows.sort(key=lambda r: r[0])
