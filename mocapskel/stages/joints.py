@@ -576,8 +576,11 @@ def leave_out_strays(joints: Joints, far: float) -> Joints:
     keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}], dtype=int)
     edges = new_of[topo.edges[keep_e]]
     root = int(new_of[topo.root]) if topo.root not in drop else int(edges[0][0])
+    topo_info = dict(topo.info)
+    if isinstance(topo_info.get("own_floor_mm2"), list) and len(topo_info["own_floor_mm2"]) == seg.n_segments:
+        topo_info["own_floor_mm2"] = [topo_info["own_floor_mm2"][s_] for s_ in keep_s]
     new_topo = replace(topo, segments=new_seg, edges=edges, cost=topo.cost[keep_e],
-                       pair_cost=topo.pair_cost[np.ix_(keep_s, keep_s)], root=root)
+                       pair_cost=topo.pair_cost[np.ix_(keep_s, keep_s)], root=root, info=topo_info)
     info = dict(joints.info, per_joint=[joints.info["per_joint"][e] for e in keep_e],
                 warnings=list(joints.info.get("warnings", [])) + said)
     if "alt_start" in info:
