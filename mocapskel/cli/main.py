@@ -24,6 +24,7 @@ log = logging.getLogger("mocapskel")
 class _State:
     verbose = 0
     said: list[str] = []  # messages already written to stderr in this run
+    pending: int | None = None  # a signal that arrived in this run (see raise_pending)
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
@@ -75,6 +76,7 @@ class Interrupted(BaseException):
 
 
 def _on_sigterm(signum, frame) -> None:
+    _State.pending = signal.SIGTERM
     raise Terminated()
 
 
@@ -82,7 +84,18 @@ def _on_sigint(signum, frame) -> None:
     # not KeyboardInterrupt itself: CPython 3.11 kills itself with SIGINT at exit (exit status -2, not 130)
     # when a KeyboardInterrupt went through exec() of a string on its way (a dataclass being created by a
     # lazy import, say), whatever sys.exit said
+    _State.pending = signal.SIGINT
     raise Interrupted()
+
+
+def raise_pending() -> None:
+    """Raise again a signal that arrived in this run: one whose exception a library swallowed (a bare
+    ``except:`` in a module being imported when it came: a SIGTERM 0.3 s into a fit once let the fit run to
+    its end and exit 0). Called before any output is put in place and when the command returns."""
+    if _State.pending == signal.SIGTERM:
+        raise Terminated()
+    if _State.pending == signal.SIGINT:
+        raise Interrupted()
 
 
 class MocapskelGroup(click.Group):
@@ -93,7 +106,10 @@ class MocapskelGroup(click.Group):
 
     def invoke(self, ctx):  # noqa: D102
         try:
-            return super().invoke(ctx)
+            raise_pending()
+            out = super().invoke(ctx)
+            raise_pending()
+            return out
         except KeyboardInterrupt:
             raise Interrupted() from None
 
@@ -101,6 +117,7 @@ class MocapskelGroup(click.Group):
         main_thread = threading.current_thread() is threading.main_thread()
         old: dict[int, object] = {}
         args = list(sys.argv[1:] if args is None else args)
+        _State.pending = None
         try:
             if main_thread:  # from here on a signal cleans up (temporary files) and ends in 130 / 143
                 for sig, handler in ((signal.SIGTERM, _on_sigterm), (signal.SIGINT, _on_sigint)):
@@ -143,6 +160,7 @@ class MocapskelGroup(click.Group):
                 traceback.print_exc()
             _fail(f"unexpected {type(e).__name__}: {e} — run with -v for details and report it", 1)
         finally:
+            _State.pending = None  # the run is over: nothing is held against the next (tests run many in one process)
             for sig, handler in old.items():  # (the console entry's handlers: a signal now exits at once)
                 signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         sys.exit(0)
@@ -174,6 +192,10 @@ COMMAND_MODULES = ("fit", "stages", "inspect", "synth", "solve", "batch", "repor
 def _register() -> None:
     import importlib
 
+    from ..io import atomic
+
+    if raise_pending not in atomic.before_commit:
+        atomic.before_commit.append(raise_pending)  # no output is put in place after a signal
     for name in COMMAND_MODULES:
         importlib.import_module(f"{__package__}.{name}")
 

@@ -33,6 +33,16 @@ def short_name(name: str, room: int = _ROOM) -> str:
     return os.fsdecode(cut)  # pragma: no cover - not UTF-8 at all
 
 
+#: Called with no argument just before an output is put in place; may raise to keep it out (the command
+#: line raises there a signal whose exception a library swallowed while the run went on).
+before_commit: list = []
+
+
+def _before_commit() -> None:
+    for check in before_commit:
+        check()
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -53,6 +63,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[str]:
     os.close(fd)
     try:
         yield tmp
+        _before_commit()
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual mode
         os.replace(tmp, target)
     except BaseException:
@@ -108,6 +119,7 @@ class AtomicOutputs:
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
             if exc_type is None:
+                _before_commit()
                 held = _hold_signals()
                 try:
                     for tmp, target in self._staged:
