@@ -118,16 +118,15 @@ def split_subjects(markers: Markers) -> list[np.ndarray] | None:
     parts = best[1]
     # a group whose markers all keep their distances is one rigid object (a box, a prop), not a subject:
     # it goes with the subject nearest to it (the stages after leave it out if nothing ties it to that one)
-    moves = [p for p in parts if _articulated(dstd[np.ix_(used[p], used[p])])]
-    if len(moves) < 2:
+    moving = [p for p in parts if _articulated(dstd[np.ix_(used[p], used[p])])]
+    if len(moving) < 2:
         return None
+    joined = [[p] for p in moving]
     for p in parts:
-        if not any(p is q for q in moves):
-            near = [np.nanmin(dmax[np.ix_(used[p], used[q])]) if np.isfinite(dmax[np.ix_(used[p], used[q])]).any()
-                    else np.inf for q in moves]
-            k = int(np.argmin(near))
-            moves[k] = np.concatenate([moves[k], p])
-    parts = moves
+        if not _articulated(dstd[np.ix_(used[p], used[p])]):
+            near = [np.nanmin(d) if np.isfinite(d := dmax[np.ix_(used[p], used[q])]).any() else np.inf for q in moving]
+            joined[int(np.argmin(near))].append(p)
+    parts = [np.concatenate(j) for j in joined]
     groups = [np.sort(used[p]) for p in parts]
     groups.sort(key=lambda g: int(g[0]))
     rest = np.setdiff1d(np.arange(M), used)

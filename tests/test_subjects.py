@@ -118,6 +118,22 @@ def test_a_rigid_object_apart_from_the_subjects_is_no_subject(two) -> None:
     assert split_subjects(alone) is None
 
 
+def test_a_rigid_object_listed_between_the_subjects_goes_with_one_of_them_once(two) -> None:
+    """The box's markers listed between the two subjects' and the box beside the second: every marker is in
+    exactly one group (the box with the second subject), whatever the order of the groups."""
+    d, takes = two
+    mk = read_markers(d / "two.c3d")
+    nA = takes[0].markers.n_markers
+    box = _carried_box(mk.n_frames, 2, np.array([3000.0, 0.0, 2500.0]))
+    pts = np.concatenate([mk.points[:, :nA], box, mk.points[:, nA:]], axis=1)
+    labels = tuple(mk.labels[:nA]) + ("X1", "X2", "X3", "X4") + tuple(mk.labels[nA:])
+    groups = split_subjects(replace(mk, points=pts, labels=labels))
+    assert groups is not None and len(groups) == 2
+    every = np.concatenate(groups)
+    assert sorted(every.tolist()) == list(range(len(labels)))
+    assert sorted(labels[i] for i in groups[1] if labels[i].startswith("X")) == ["X1", "X2", "X3", "X4"]
+
+
 def test_each_subject_is_fitted_as_its_take_alone(two) -> None:
     """Every subject's joints equal those of the fit of its markers alone, and score as well against its truth."""
     d, takes = two
