@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..artifacts import Joints, Topology
+from ..checks import marker_extent
 from ..errors import DataError
 from ..parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
@@ -41,7 +42,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 18
+VERSION = 19
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -482,8 +483,8 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
     - its joint's residual exceeds the take's rigid tolerance (``STRAY_RESIDUAL_ONE`` times it for one
       marker, ``STRAY_RESIDUAL`` times for more): no point keeps its place in both bodies as a joint does;
     - the joint's median distance over the frames from the leaf's markers and from every marker of its
-      neighbour exceeds ``far`` times the subject's marker extent without the leaf (the largest mean
-      distance between two of the other markers);
+      neighbour exceeds ``far`` times the subject's marker extent without the leaf (the output checks'
+      :func:`~mocapskel.checks.marker_extent` of the other markers, the bar of ``joint_far``);
     - it moves: a marker or object that stands still (a robot's base on its table) is the lab's own
       frame, not a stray.
     On 440 generated random trees of three to five links of 300 mm with one-marker leaves (a subject barely
@@ -509,21 +510,16 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
             leaves.append((int(s_), e))
     if not leaves:
         return []
-    on = np.flatnonzero(seg.group >= 0)
-    tot = np.zeros((on.size, on.size))
-    cnt = np.zeros((on.size, on.size))
-    for q in P[:: max(1, P.shape[0] // 50), on]:  # the mean distance of every pair, on 50 frames
-        d = np.sqrt(((q[:, None] - q[None]) ** 2).sum(-1))
-        ok = np.isfinite(d)
-        tot[ok] += d[ok]
-        cnt += ok
-    mean_d = np.where(cnt > 0, tot / np.maximum(cnt, 1), 0.0)
     out = []
     for s_, e in leaves:
-        others = seg.group[on] != s_
-        if others.sum() < 2 or S - 1 - len(out) < 2:
+        others = np.flatnonzero((seg.group >= 0) & (seg.group != s_))
+        if others.size < 2 or S - 1 - len(out) < 2:
             continue
-        lim = far * float(mean_d[np.ix_(others, others)].max())  # the subject's extent without this leaf
+        # the output checks' subject extent (joint_far's bar), without this leaf: a stray far away inflates it
+        extent = marker_extent(pts[:, others], frames)
+        if not np.isfinite(extent):
+            continue
+        lim = far * extent
         x = P[:, seg.members(s_)]  # (n, k, 3)
         with pywarnings.catch_warnings():
             pywarnings.simplefilter("ignore", RuntimeWarning)
