@@ -34,7 +34,7 @@ def _score(name: str, tmp_path: Path) -> dict:
         pytest.skip(MISSING)
     out = tmp_path / f"{name}.bvh"
     r = CliRunner().invoke(cli, ["fit", str(REALREF / f"{name}.c3d"), "-o", str(out), "--up", "z", "--units", "mm",
-                                 "--no-cache", "-q"])
+                                 "--no-cache", "-q", "--report", str(tmp_path / f"{name}.json")])
     assert r.exit_code == 0, r.stderr
     s = subprocess.run([sys.executable, str(REALREF / "score.py"), name, str(out)], capture_output=True, text=True,
                        check=True)
@@ -62,6 +62,11 @@ def test_robot_arm_links_between_parallel_axes_within_five_percent(tmp_path: Pat
     s = _score("kinova_dynamique_pierre", tmp_path)
     good = [lk for lk in s["links"] if lk["err_pct"] <= 5.0]
     assert len(good) >= 2, s["links"]
+    # no bone metres long: the joint between the two links with an unmarked link between them ran 1.7 m
+    # down the axes (bones of 3.5 m) until it was held where the axes pass nearest the markers
+    rep = json.loads((tmp_path / "kinova_dynamique_pierre.json").read_text())
+    assert not [c for c in rep["checks"] if c["check"] in ("bone_length", "joint_far")], rep["checks"]
+    assert max(b["length_mm"] for b in rep["bones"] if b["length_mm"] is not None) < 300.0, rep["bones"]
 
 
 def test_cmu_full_body_take_joints_and_bones(tmp_path: Path) -> None:

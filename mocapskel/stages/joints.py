@@ -42,7 +42,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 19
+VERSION = 20
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -279,7 +279,93 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         info["alt_start"] = [int(e) for e in jmv_placed]
     out = Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
                  alt_centres=alt)
-    return leave_out_strays(out, params.stray_far) if params.stray_far else out
+    if not params.stray_far:
+        return out
+    return hold_far(leave_out_strays(out, params.stray_far), params.stray_far, diag)
+
+
+def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
+    """``joints`` with the joints that ran off along a free line held near their markers
+    (:func:`hold_far_joints`), their residuals measured again and a warning each."""
+    seg = joints.topology.segments
+    pts = seg.markers.points
+    groups = [_columns(pts, seg.members(s)) for s in range(seg.n_segments)]
+    edges = joints.topology.edges
+    centres = joints.centres.copy()
+    held = hold_far_joints(centres, groups, edges, far, diag)
+    alt = None
+    if joints.alt_centres is not None:  # the rigid stage's other start: its joints ran off as far
+        alt = joints.alt_centres.copy()
+        hold_far_joints(alt, groups, edges, far, diag)
+    if not held and (alt is None or np.array_equal(alt, joints.alt_centres, equal_nan=True)):
+        return joints
+    names = _segment_labels(seg)
+    per_joint = [dict(p) for p in joints.info["per_joint"]]
+    warnings = list(joints.info.get("warnings", []))
+    residual = joints.residual.copy()
+    for e, (dist, step) in held.items():
+        a, b = edges[e]
+        both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
+        residual[e] = np.sqrt(joint_cost(centres[diag, e], both, alpha=0.0))
+        per_joint[e]["why"] = per_joint[e].get("why", "") + (
+            f"; ran {dist:.0f} mm from its markers along a line they hardly fix: held where that line passes nearest them")
+        per_joint[e]["held_mm"] = round(step, 1)
+        warnings.append(f"joint {names[a]}–{names[b]}: the markers leave its centre free along a line (a hinge in a"
+                        f" planar motion, or two joints with no markers between them): it ran {dist:.0f} mm from them"
+                        f" and is held where the line passes nearest them, {step:.0f} mm back")
+    return replace(joints, centres=centres, residual=residual, alt_centres=alt,
+                   info=dict(joints.info, per_joint=per_joint, warnings=warnings))
+
+
+def hold_far_joints(centres: np.ndarray, groups: list, edges: np.ndarray, far: float,
+                    diag: np.ndarray | slice) -> dict[int, tuple[float, float]]:
+    """Bring back, in place, joints that ran off along a line the markers hardly fix.
+
+    A joint farther than ``far`` times the subject's marker extent from every marker of its two segments
+    (the output check ``joint_far``) where one segment has three or more markers: taken as fixed in that
+    segment (its median place in the segment's frame), it is moved along the direction its joint cost
+    changes least (the weakest of the cost's Gauss-Newton curvature, 3 x 3) to where that line passes
+    nearest the two segments' markers. Returns {edge: (distance it ran, mm; the step back, mm)}."""
+    out: dict[int, tuple[float, float]] = {}
+    extent = marker_extent(np.concatenate(groups, axis=1))
+    if not np.isfinite(extent):
+        return out
+    for e, (a, b) in enumerate(edges):
+        A, B = groups[a], groups[b]
+        c = centres[:, e]
+        both = np.concatenate([A, B], axis=1)
+        with pywarnings.catch_warnings():
+            pywarnings.simplefilter("ignore", RuntimeWarning)
+            dist = float(np.nanmedian(np.nanmin(np.linalg.norm(both[diag] - c[diag][:, None], axis=-1), axis=1)))
+        if not dist > far * extent:
+            continue
+        frame = A if A.shape[1] >= B.shape[1] else B
+        full = np.flatnonzero(np.isfinite(frame).all(axis=(1, 2)))
+        if frame.shape[1] < 3 or not full.size:
+            continue
+        R, t = shape_poses(frame[full[0]], frame)
+        loc = np.einsum("fji,fkj->fki", R, both - t[:, None, :])  # every marker in the frame
+        local_c = np.einsum("fji,fj->fi", R, c - t)
+        ok = np.isfinite(local_c).all(1)
+        if not ok.any():
+            continue
+        p = np.median(local_c[ok], axis=0)
+        diff = p - loc[diag]  # (f, m, 3)
+        u = diff / np.linalg.norm(diff, axis=-1, keepdims=True)
+        with pywarnings.catch_warnings():
+            pywarnings.simplefilter("ignore", RuntimeWarning)
+            dev = u - np.nanmean(u, axis=0)
+            dev = np.where(np.isfinite(dev), dev, 0.0)
+        H = np.einsum("fmi,fmj->ij", dev, dev)
+        v = np.linalg.eigh(H)[1][:, 0]
+        with pywarnings.catch_warnings():
+            pywarnings.simplefilter("ignore", RuntimeWarning)
+            m = np.nanmean(loc.reshape(-1, 3), axis=0)
+        step = float(v @ (m - p))
+        q = p + step * v
+        centres[:, e] = np.where(np.isfinite(R[:, 0, 0])[:, None], _rotate(R, q) + t, c)
+        out[e] = (dist, abs(step))
+    return out
 
 
 def _columns(pts: np.ndarray, idx: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 20
+VERSION = 21
 
 
 @dataclass(frozen=True)
@@ -441,7 +441,8 @@ def slid_joints(before: Skeleton, after: Skeleton, slide: float) -> list[int]:
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None,
            hold: dict[int, np.ndarray] | None = None) -> Skeleton:
     """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
-    from its markers, or slid far from where the joints stage put it.
+    from its markers, or slid far from where the joints stage put it, and with those joints any other
+    that holding them pushes off the body.
 
     partial : a refinement of ``skel`` stopped early, to go on from.
     hold : the hinge axes that refinement held (see :func:`_refine_once`), so that they are not
@@ -465,6 +466,12 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
         # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
         # joints where the joints stage put them
         held, _ = _refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel, hold=hold)
+        more = sorted(set(off_the_body(held, params.far, params.outside)) - set(bad))
+        if more:
+            # holding them pushed another joint off the body (two joints with no markers between them: the
+            # one held, the other slid to make up for it): it is held too
+            bad = sorted(set(bad) | set(more))
+            held, _ = _refine_once(out, params, centres, params.joint_prior, set(bad), anchor=skel, hold=hold)
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
         # A clearly worse fit: the markers needed the move (a rough start put right), so it stays.
