@@ -125,3 +125,29 @@ def test_regression_rigid_bodies_that_barely_move_against_each_other_are_not_sin
         body.setdefault(lab.split("_")[0], set()).add(int(seg.group[i]))
     assert len(body["Knee"]) == 1 and len(body["Leg"]) == 1 and len(body["Foot"]) <= 2
     assert len(body["Knee"] | body["Leg"] | body["Foot"]) == len(body["Knee"]) + len(body["Leg"]) + len(body["Foot"])
+
+
+def test_regression_no_joint_far_from_its_segments_joins_the_tree(tmp_path: Path) -> None:
+    """A lower-limb calibration take with 24 of its 60 markers left out (``--exclude``): the tree joined
+    the two-marker head to a one-marker toe and the toe to the right shank, on a joint 2.3 m from every
+    marker of the pair (bones of 2.6 and 2.3 m, checks bone_length and joint_far). A pair whose joint
+    lies beyond the joint_far bar is taken only when nothing else connects, as one nearer a third
+    segment is: the right leg's segments join each other, and no check fails."""
+    src = REALDATA / "biobuddy" / "lower_limb_calibration" / "Test_func_rknee.c3d"
+    if not src.is_file():
+        pytest.skip(MISSING)
+    gone = ["S3", "S1", "T6", "C2", "LTHID", "LNAV", "LTOE5", "RTHIB", "RKNEM", "RNAV", "RFHD", "RBHD", "C7", "STRN",
+            "RELB", "RFRM", "RFIN", "RASI", "LTIB", "LANK", "LHEE", "RTIB", "RHEE", "RTOE"]
+    out, rep = tmp_path / "x.bvh", tmp_path / "x.json"
+    args = ["fit", str(src), "-o", str(out), "--no-cache", "-q", "--report", str(rep)]
+    for name in gone:
+        args += ["--exclude", name]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.stderr
+    report = json.loads(rep.read_text())
+    assert not [c for c in report["checks"] if c["check"] in ("bone_length", "joint_far")], report["checks"]
+    seg = {s["name"]: set(s["markers"]) for s in report["segments"]}
+    pairs = [(seg[j["parent"]], seg[j["child"]]) for j in report["joints"]]
+    toe = next(s for s in seg.values() if "RTOE5" in s)
+    assert not [p for p in pairs if toe in p and ({"LFHD", "LBHD"} & (p[0] | p[1]))]
+    assert [p for p in pairs if toe in p and "RANK" in (p[0] | p[1])]

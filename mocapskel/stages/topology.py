@@ -8,7 +8,9 @@ turn about its marker axis, which a joint with it otherwise leaves free; the
 point's variance counts, not its share of the mean cost); the skeleton's tree
 is the minimum spanning tree of those costs, each less the part its markers'
 own scatter in their segments gives by itself (:func:`own_floor`; Kruskal, equal
-costs taken in pair order). The root is the tree's centre, like a pelvis.
+costs taken in pair order), a pair whose joint no body has (nearer a third segment's
+markers than its own, or far from both) taken only when nothing else connects. The
+root is the tree's centre, like a pelvis.
 
 Only the subsample and the per-frame visibility of the segments depend on the
 length of the take; both are one pass over the visibility of the markers.
@@ -21,13 +23,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Segments, Topology
+from ..checks import marker_extent
 from ..errors import DataError
 from ..parallel import n_threads, run_forked
 from ..solvers.jmv import balanced_alpha, distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 from ..solvers.partition import rigid_rms
 
-VERSION = 11
+VERSION = 12
 
 
 #: Frames of each pair's cost (``pair_cost``'s subsample of the common frames).
@@ -53,6 +56,9 @@ class Params:
     than this fraction of the nearer of its own two segments' nearest markers (the farther is no
     measure: a hip sits far from a thigh's markers at mid-thigh and knee, and a hanging arm's
     elbow is nearer)."""
+    far: float = 0.5
+    """...or lies farther than this fraction of the subject's marker extent from every marker of its two
+    segments (the output check ``joint_far``'s bar)."""
     elsewhere_factor: float = 10.0
     """Cost factor of such a pair (kept finite: the tree may still need it)."""
     own_floor: bool = True
@@ -179,6 +185,17 @@ def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int
     return bool(others) and bool(np.isfinite(own)) and min(others) < ratio * own
 
 
+def _far_off(centre: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, lim: float) -> bool:
+    """Whether the joint ``centre`` (K, 3) lies farther than ``lim`` from every marker of its two segments
+    (median over the frames of the nearest one's distance): no joint of a body lies there."""
+    if centre is None or not np.isfinite(centre).any() or not np.isfinite(lim):
+        return False
+    with np.errstate(invalid="ignore"):
+        d = np.linalg.norm(pts[:, np.concatenate([a, b])] - centre[:, None, :], axis=2)
+    ok = np.isfinite(d).any(axis=1)
+    return bool(ok.any()) and float(np.median(np.nanmin(d[ok], axis=1))) > lim
+
+
 def run(segments: Segments, params: Params = Params()) -> Topology:
     """Find the tree of segments and direct it away from the root."""
     pts = segments.markers.points
@@ -201,6 +218,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
+    far = params.far * marker_extent(pts[:, inseg])
     on_sub: dict[tuple[int, int], np.ndarray] = {}  # (a, b), a < b: the joint on the common subsample
     def cost_pair(ab: tuple[int, int]):
         a, b = ab
@@ -216,7 +234,8 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
             at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
             q, c = pair_cost(at[:, members[a]], at[:, members[b]], alpha=alpha, frames=np.arange(at.shape[0]),
                              return_centre=True)
-        return q, (c if at is sub else None), _nearer_elsewhere(c, at, members, a, b, params.nearer)
+        return q, (c if at is sub else None), (_nearer_elsewhere(c, at, members, a, b, params.nearer)
+                                              or _far_off(c, at, members[a], members[b], far))
 
     # the pairs are independent: shared out between processes (each pair's cost is the same either way)
     pairs = [(a, b) for a in range(S) for b in range(a + 1, S)]
