@@ -14,6 +14,7 @@ BENCHES = [
     ("Passive data: merge-ids", "bench.passive"),
     ("Batches: local workers", "bench.batch"),
     ("Real takes", "bench.realdata"),
+    ("Real takes made messier", "bench.altered"),
     ("Output checks: real and generated takes", "bench.checks"),
     ("Humanoid names", "bench.names"),
     ("Generated takes that look like real captures", "bench.realistic"),

@@ -42,7 +42,7 @@ from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
 
-VERSION = 20
+VERSION = 21
 
 #: Default ``Params.diag_frames``: takes up to 80 s at 120 Hz in full.
 DIAG_FRAMES = 10_000
@@ -257,16 +257,17 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                     f"joint {names[a]}–{names[b]}: centre poorly determined — the segments turn only {turn:.1f}° relative"
                     " to each other; record a range-of-motion take that exercises this joint"
                 )
+    if not np.isfinite(centres).any():
+        raise DataError("no joint centre could be estimated", seg.markers.source or None)
+    unplaced = unplaced_leaves(edges, [e for e in range(E) if not np.isfinite(centres[:, e]).any()], S)
     residual = np.full(E, np.nan)
     for e, (a, b) in enumerate(edges):
         c = centres[diag, e]
         if np.isfinite(c).any():
             both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
             residual[e] = np.sqrt(joint_cost(c, both, alpha=0.0))
-        else:
+        elif e not in {e_ for _, e_ in unplaced}:
             warnings.append(f"joint {a}-{b} could not be placed in any frame")
-    if not np.isfinite(centres).any():
-        raise DataError("no joint centre could be estimated", seg.markers.source or None)
     info = {"version": VERSION, "method": params.method, "per_joint": per_joint, "warnings": warnings}
     alt = None
     jmv_placed = [e for e in alt_from_tree if methods[e] == "jmv"]
@@ -279,6 +280,8 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         info["alt_start"] = [int(e) for e in jmv_placed]
     out = Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
                  alt_centres=alt)
+    if unplaced:
+        out = leave_out(out, unplaced, [_unplaced_note(out, s_, e) for s_, e in unplaced])
     if not params.stray_far:
         return out
     return hold_far(leave_out_strays(out, params.stray_far), params.stray_far, diag)
@@ -625,37 +628,74 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
     return out
 
 
+def unplaced_leaves(edges: np.ndarray, unplaced: list[int], n_segments: int) -> list[tuple[int, int]]:
+    """The leaf segments whose joint (an edge of ``unplaced``) could not be placed in any frame: [(segment,
+    edge)]. A joint needs three or more markers of its two segments seen together (a one-marker segment at
+    the end of a chain, hung on another one-marker segment, has two); without it the leaf cannot be fitted,
+    and the rest of the skeleton still can. Two segments are always kept."""
+    deg = np.bincount(np.asarray(edges).ravel(), minlength=n_segments)
+    out: list[tuple[int, int]] = []
+    for e in unplaced:
+        a, b = (int(x) for x in edges[e])
+        leaf = b if deg[b] == 1 else a if deg[a] == 1 else None
+        if leaf is not None and leaf not in {s_ for s_, _ in out} and n_segments - 1 - len(out) >= 2:
+            out.append((leaf, e))
+    return out
+
+
+def _unplaced_note(joints: Joints, s_: int, e: int) -> str:
+    """The warning of a leaf left out because its joint could not be placed."""
+    seg = joints.topology.segments
+    names = _segment_labels(seg)
+    ms = [seg.markers.labels[int(i)] for i in seg.members(s_)]
+    a, b = (int(x) for x in joints.topology.edges[e])
+    other = a if b == s_ else b
+    n = len(ms) + int(seg.members(other).size)
+    what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
+    return (f"{what} left out of the skeleton: its joint with segment {names[other]} could not be placed in any frame —"
+            f" a joint needs three or more markers on its two segments, seen together, and they have {n}")
+
+
 def leave_out_strays(joints: Joints, far: float) -> Joints:
-    """``joints`` without the stray leaves of :func:`stray_leaves`: their markers left out of
-    the segments (as markers seen too rarely are), their joints out of the tree, the rest renumbered."""
+    """``joints`` without the stray leaves of :func:`stray_leaves` (see :func:`leave_out`)."""
     strays = stray_leaves(joints, far)
     if not strays or joints.topology.segments.n_segments - len(strays) < 2:
         return joints
-    topo = joints.topology
-    seg = topo.segments
+    seg = joints.topology.segments
     labels = seg.markers.labels
     names = _segment_labels(seg)
-    drop = sorted(s_ for s_, _, _ in strays)
-    keep_s = np.array([s_ for s_ in range(seg.n_segments) if s_ not in drop])
-    new_of = np.full(seg.n_segments, -1, dtype=int)
-    new_of[keep_s] = np.arange(keep_s.size)
-    group = np.where(seg.group >= 0, new_of[np.maximum(seg.group, 0)], -1)
+    edges = joints.topology.edges
     said = []
     for s_, e, dist in strays:
         ms = [labels[int(i)] for i in seg.members(s_)]
-        other = int(topo.edges[e][0] if topo.edges[e][1] == s_ else topo.edges[e][1])
+        other = int(edges[e][0] if edges[e][1] == s_ else edges[e][1])
         what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
         fit = "" if len(ms) == 1 else f" fits its markers only to {joints.residual[e]:.0f} mm and"
         said.append(f"{what} left out of the skeleton: it rides on nothing of the subject — its best joint with"
                     f" segment {names[other]}{fit} lies {dist:.0f} mm from {'it' if len(ms) == 1 else 'them'} and"
                     f" from that segment's markers (more than {far:g} of the subject's marker extent): a marker on a"
                     " prop or a sync device, a loose marker, an object the subject handles")
+    return leave_out(joints, [(s_, e) for s_, e, _ in strays], said)
+
+
+def leave_out(joints: Joints, drops: list[tuple[int, int]], said: list[str]) -> Joints:
+    """``joints`` without the leaf segments ``drops`` [(segment, its edge)]: their markers left out of the
+    segments (as markers seen too rarely are), their joints out of the tree, the rest renumbered; ``said``
+    the warnings."""
+    topo = joints.topology
+    seg = topo.segments
+    labels = seg.markers.labels
+    drop = sorted(s_ for s_, _ in drops)
+    keep_s = np.array([s_ for s_ in range(seg.n_segments) if s_ not in drop])
+    new_of = np.full(seg.n_segments, -1, dtype=int)
+    new_of[keep_s] = np.arange(keep_s.size)
+    group = np.where(seg.group >= 0, new_of[np.maximum(seg.group, 0)], -1)
     gone = [labels[int(i)] for s_ in drop for i in seg.members(s_)]
-    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + gone, strays=gone, n_segments=int(keep_s.size))
+    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + gone, n_segments=int(keep_s.size))
     if isinstance(seg.info.get("groups"), list) and len(seg.info["groups"]) == seg.n_segments:
         seg_info["groups"] = [g for s_, g in enumerate(seg.info["groups"]) if s_ not in drop]
     new_seg = replace(seg, group=group, info=seg_info)
-    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_, _ in strays}], dtype=int)
+    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_ in drops}], dtype=int)
     edges = new_of[topo.edges[keep_e]]
     root = int(new_of[topo.root]) if topo.root not in drop else int(edges[0][0])
     topo_info = dict(topo.info)
