@@ -120,7 +120,9 @@ def _reason(err: str) -> str:
     """The kind of a refusal, from its message."""
     msg = err.strip().splitlines()[-1] if err.strip() else ""
     for key, what in (("visible run", "too short"), ("one rigid body", "one rigid body"), ("nothing moves", "nothing moves"),
-                      ("single marker", "one marker a segment"), ("too few", "too few markers or frames")):
+                      ("single marker", "one marker a segment"), ("too few", "too few markers or frames"),
+                      ("never seen well enough", "a segment never seen well enough to fit"),
+                      ("seen often enough", "too few markers seen often enough")):
         if key in msg:
             return what
     return msg.split(": ", 3)[-1][:60]

@@ -88,7 +88,8 @@ class Params:
     """A leaf of the tree whose joint lies farther than this fraction of the subject's marker extent from
     its markers and from every marker of its neighbour, that moves, and (two or more markers) fits no
     joint, rides on nothing of the subject (a sync light, a ball, a carried box): it is left out of the
-    skeleton (see :func:`stray_leaves`); 0: kept. The bar of the output check ``joint_far``."""
+    skeleton (see :func:`stray_leaves`); 0: kept. The bar of the output check ``joint_far``; a joint that still
+    lies that far from every marker of its two segments is held near them (see :func:`hold_far_joints`)."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -355,15 +356,12 @@ def hold_far_joints(centres: np.ndarray, groups: list, edges: np.ndarray, far: f
         p = np.median(local_c[ok], axis=0)
         diff = p - loc[diag]  # (f, m, 3)
         u = diff / np.linalg.norm(diff, axis=-1, keepdims=True)
-        with pywarnings.catch_warnings():
+        with pywarnings.catch_warnings():  # markers never seen: NaN means, left out
             pywarnings.simplefilter("ignore", RuntimeWarning)
             dev = u - np.nanmean(u, axis=0)
-            dev = np.where(np.isfinite(dev), dev, 0.0)
-        H = np.einsum("fmi,fmj->ij", dev, dev)
-        v = np.linalg.eigh(H)[1][:, 0]
-        with pywarnings.catch_warnings():
-            pywarnings.simplefilter("ignore", RuntimeWarning)
             m = np.nanmean(loc.reshape(-1, 3), axis=0)
+        dev = np.where(np.isfinite(dev), dev, 0.0)
+        v = np.linalg.eigh(np.einsum("fmi,fmj->ij", dev, dev))[1][:, 0]
         step = float(v @ (m - p))
         q = p + step * v
         centres[:, e] = np.where(np.isfinite(R[:, 0, 0])[:, None], _rotate(R, q) + t, c)
