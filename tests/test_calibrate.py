@@ -503,7 +503,8 @@ def test_a_hip_that_slides_out_of_the_body_is_held():
 def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
     """Holding the joints that slid must not cost others their place: on a real functional trial (biobuddy
     right_hip) the held refinement, within 4 % of the free fit's marker rms, slid three other joints 2 m
-    from their markers while the free fit had none off the body. The free fit is then kept."""
+    from their markers while the free fit had none off the body. Those are then held too; if the fit
+    held that way still puts more joints off the body than the free fit, the free fit is kept."""
     from mocapskel.synth.chains import hang_chain
 
     take = hang_chain((4, 3, 3), 300, rng=np.random.default_rng(3), link_length=300.0)
@@ -521,15 +522,28 @@ def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
     local[skel.marker_segment == leaf] -= [0.0, 0.0, 3000.0]
     held = fitted(replace(skel, origin=origin, marker_local=local), 2.05)  # within hold_tolerance
     assert rigid.implausible_joints(held, params.far, params.outside) and not rigid.implausible_joints(free, params.far, params.outside)
-    calls = iter([(free, {}), (held, {})])
-    monkeypatch.setattr(rigid, "_refine_once", lambda *a, **k: next(calls))
-    monkeypatch.setattr(rigid, "slid_joints", lambda before, after, slide: [int(np.flatnonzero(skel.parent >= 0)[0])])
+    first = int(np.flatnonzero(skel.parent >= 0)[0])
+    held_sets = []
+
+    def refine_once(*a, **k):
+        if len(a) > 4:
+            held_sets.append(set(a[4]))
+        return next(calls)
+
+    calls = iter([(free, {}), (held, {}), (held, {})])  # held again with the joint it pushed off: still off
+    monkeypatch.setattr(rigid, "_refine_once", refine_once)
+    monkeypatch.setattr(rigid, "slid_joints", lambda before, after, slide: [first])
     out = rigid.refine(skel, params)
     assert out is free and "held_because" not in out.info["refined"]
-    # a hold that keeps every joint on the body, within the tolerance, is kept
+    assert held_sets == [{first}, {first, leaf}]
+    # held with it, every joint on the body and within the tolerance: kept, both named
+    calls = iter([(free, {}), (held, {}), (fitted(skel, 2.05), {})])
+    out = rigid.refine(skel, params)
+    assert out is not free and set(out.info["refined"]["held_because"]) == {skel.names[first], skel.names[leaf]}
+    # a hold that keeps every joint on the body at once, within the tolerance, is kept
     calls = iter([(free, {}), (fitted(skel, 2.05), {})])
     out = rigid.refine(skel, params)
-    assert out is not free and out.info["refined"]["held_because"]
+    assert out is not free and out.info["refined"]["held_because"] == [skel.names[first]]
 
 
 def _pelvis_and_legs(extra_marker: bool = False):
