@@ -118,12 +118,13 @@ def split_subjects(markers: Markers) -> list[np.ndarray] | None:
     parts = best[1]
     # a group whose markers all keep their distances is one rigid object (a box, a prop), not a subject:
     # it goes with the subject nearest to it (the stages after leave it out if nothing ties it to that one)
-    moving = [p for p in parts if _articulated(dstd[np.ix_(used[p], used[p])])]
+    art = [_articulated(dstd[np.ix_(used[p], used[p])]) for p in parts]
+    moving = [p for p, a in zip(parts, art) if a]
     if len(moving) < 2:
         return None
     joined = [[p] for p in moving]
-    for p in parts:
-        if not _articulated(dstd[np.ix_(used[p], used[p])]):
+    for p, a in zip(parts, art):
+        if not a:
             near = [np.nanmin(d) if np.isfinite(d := dmax[np.ix_(used[p], used[q])]).any() else np.inf for q in moving]
             joined[int(np.argmin(near))].append(p)
     parts = [np.concatenate(j) for j in joined]

@@ -296,11 +296,12 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
     groups = [_columns(pts, seg.members(s)) for s in range(seg.n_segments)]
     edges = joints.topology.edges
     centres = joints.centres.copy()
-    held = hold_far_joints(centres, groups, edges, far, diag)
+    extent = marker_extent(np.concatenate(groups, axis=1))
+    held = hold_far_joints(centres, groups, edges, far, diag, extent)
     alt = None
     if joints.alt_centres is not None:  # the rigid stage's other start: its joints ran off as far
         alt = joints.alt_centres.copy()
-        hold_far_joints(alt, groups, edges, far, diag)
+        hold_far_joints(alt, groups, edges, far, diag, extent)
     if not held and (alt is None or np.array_equal(alt, joints.alt_centres, equal_nan=True)):
         return joints
     names = _segment_labels(seg)
@@ -322,16 +323,18 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
 
 
 def hold_far_joints(centres: np.ndarray, groups: list, edges: np.ndarray, far: float,
-                    diag: np.ndarray | slice) -> dict[int, tuple[float, float]]:
+                    diag: np.ndarray | slice, extent: float | None = None) -> dict[int, tuple[float, float]]:
     """Bring back, in place, joints that ran off along a line the markers hardly fix.
 
     A joint farther than ``far`` times the subject's marker extent from every marker of its two segments
     (the output check ``joint_far``) where one segment has three or more markers: taken as fixed in that
     segment (its median place in the segment's frame), it is moved along the direction its joint cost
     changes least (the weakest of the cost's Gauss-Newton curvature, 3 x 3) to where that line passes
-    nearest the two segments' markers. Returns {edge: (distance it ran, mm; the step back, mm)}."""
+    nearest the two segments' markers. ``extent``: the subject's marker extent, when the caller has it.
+    Returns {edge: (distance it ran, mm; the step back, mm)}."""
     out: dict[int, tuple[float, float]] = {}
-    extent = marker_extent(np.concatenate(groups, axis=1))
+    if extent is None:
+        extent = marker_extent(np.concatenate(groups, axis=1))
     if not np.isfinite(extent):
         return out
     for e, (a, b) in enumerate(edges):
@@ -641,15 +644,22 @@ def unplaced_leaves(edges: np.ndarray, unplaced: list[int], n_segments: int) -> 
     return out
 
 
+def _leaf_words(joints: Joints, s_: int, e: int, names: list[str]) -> tuple[list[str], int, str]:
+    """A leaf ``s_`` about to be left out: its markers' labels, the segment at the other end of its edge
+    ``e``, and how a warning names it ("marker X", or "segment N (markers X, Y)")."""
+    seg = joints.topology.segments
+    ms = [seg.markers.labels[int(i)] for i in seg.members(s_)]
+    a, b = (int(x) for x in joints.topology.edges[e])
+    what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
+    return ms, (a if b == s_ else b), what
+
+
 def _unplaced_note(joints: Joints, s_: int, e: int) -> str:
     """The warning of a leaf left out because its joint could not be placed."""
     seg = joints.topology.segments
     names = _segment_labels(seg)
-    ms = [seg.markers.labels[int(i)] for i in seg.members(s_)]
-    a, b = (int(x) for x in joints.topology.edges[e])
-    other = a if b == s_ else b
+    ms, other, what = _leaf_words(joints, s_, e, names)
     n = len(ms) + int(seg.members(other).size)
-    what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
     return (f"{what} left out of the skeleton: its joint with segment {names[other]} could not be placed in any frame —"
             f" a joint needs three or more markers on its two segments, seen together, and they have {n}")
 
@@ -659,15 +669,10 @@ def leave_out_strays(joints: Joints, far: float) -> Joints:
     strays = stray_leaves(joints, far)
     if not strays or joints.topology.segments.n_segments - len(strays) < 2:
         return joints
-    seg = joints.topology.segments
-    labels = seg.markers.labels
-    names = _segment_labels(seg)
-    edges = joints.topology.edges
+    names = _segment_labels(joints.topology.segments)
     said = []
     for s_, e, dist in strays:
-        ms = [labels[int(i)] for i in seg.members(s_)]
-        other = int(edges[e][0] if edges[e][1] == s_ else edges[e][1])
-        what = f"marker {ms[0]}" if len(ms) == 1 else f"segment {names[s_]} (markers {', '.join(ms)})"
+        ms, other, what = _leaf_words(joints, s_, e, names)
         fit = "" if len(ms) == 1 else f" fits its markers only to {joints.residual[e]:.0f} mm and"
         said.append(f"{what} left out of the skeleton: it rides on nothing of the subject — its best joint with"
                     f" segment {names[other]}{fit} lies {dist:.0f} mm from {'it' if len(ms) == 1 else 'them'} and"

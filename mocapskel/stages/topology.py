@@ -164,17 +164,25 @@ def tree_centre(n_nodes: int, edges: np.ndarray, size: dict[int, int]) -> int:
     return min(cands, key=lambda s: (sum(dist[s]), -size.get(s, 0), s))
 
 
-def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int, b: int, ratio: float) -> bool:
-    """Whether the joint ``centre`` (K, 3) of segments ``a`` and ``b`` sits nearer to another segment.
+def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int, b: int, ratio: float,
+                      far: float = np.inf) -> bool:
+    """Whether the joint ``centre`` (K, 3) of segments ``a`` and ``b`` sits nearer to another segment, or
+    farther than ``far`` from every marker of both: no joint of theirs lies there.
 
     Each segment's distance is the median over frames of its nearest marker's distance to the joint;
     the joint belongs elsewhere when another segment's is below ``ratio`` times the smaller of ``a``'s
-    and ``b``'s. pts : (K, M, 3) the markers on the same frames.
+    and ``b``'s. Far: the median over frames of the distance of the nearest marker of the two.
+    pts : (K, M, 3) the markers on the same frames.
     """
     if centre is None or not np.isfinite(centre).any():
         return False
     with np.errstate(invalid="ignore"):
         d = np.linalg.norm(pts - centre[:, None, :], axis=2)  # (K, M)
+    if np.isfinite(far):
+        dm = d[:, np.concatenate([members[a], members[b]])]
+        ok = np.isfinite(dm).any(axis=1)
+        if ok.any() and float(np.median(np.nanmin(dm[ok], axis=1))) > far:
+            return True
     near = []
     for mem in members:
         dm = d[:, mem]
@@ -183,17 +191,6 @@ def _nearer_elsewhere(centre: np.ndarray, pts: np.ndarray, members: list, a: int
     own = min(near[a], near[b])
     others = [near[s] for s in range(len(members)) if s not in (a, b)]
     return bool(others) and bool(np.isfinite(own)) and min(others) < ratio * own
-
-
-def _far_off(centre: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, lim: float) -> bool:
-    """Whether the joint ``centre`` (K, 3) lies farther than ``lim`` from every marker of its two segments
-    (median over the frames of the nearest one's distance): no joint of a body lies there."""
-    if centre is None or not np.isfinite(centre).any() or not np.isfinite(lim):
-        return False
-    with np.errstate(invalid="ignore"):
-        d = np.linalg.norm(pts[:, np.concatenate([a, b])] - centre[:, None, :], axis=2)
-    ok = np.isfinite(d).any(axis=1)
-    return bool(ok.any()) and float(np.median(np.nanmin(d[ok], axis=1))) > lim
 
 
 def run(segments: Segments, params: Params = Params()) -> Topology:
@@ -234,8 +231,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
             at = pf[np.unique(np.linspace(0, fr.size - 1, min(PAIR_FRAMES, fr.size)).round().astype(int))]
             q, c = pair_cost(at[:, members[a]], at[:, members[b]], alpha=alpha, frames=np.arange(at.shape[0]),
                              return_centre=True)
-        return q, (c if at is sub else None), (_nearer_elsewhere(c, at, members, a, b, params.nearer)
-                                              or _far_off(c, at, members[a], members[b], far))
+        return q, (c if at is sub else None), _nearer_elsewhere(c, at, members, a, b, params.nearer, far)
 
     # the pairs are independent: shared out between processes (each pair's cost is the same either way)
     pairs = [(a, b) for a in range(S) for b in range(a + 1, S)]
