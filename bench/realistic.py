@@ -24,7 +24,7 @@ import numpy as np
 
 from bench.common import REPO, run_isolated, table
 
-CASES = [("cmu41", m, s) for m in ("walk", "run", "kick", "reach") for s in (1, 2, 3)] + \
+CASES = [("cmu41", m, s) for m in ("walk", "run", "kick", "reach", "rom") for s in (1, 2, 3)] + \
         [("gait", "walk", s) for s in (1, 2)] + [("cluster", "walk", 1), ("cluster", "reach", 1)]
 FRAMES = 600
 REAL_CMU = REPO.parent / "shared" / "realdata" / "cmu"

@@ -172,3 +172,31 @@ def test_regression_a_leaf_whose_joint_cannot_be_placed_does_not_refuse_the_take
     report = json.loads(rep.read_text())
     assert "M029" in report["segments_left_out"]
     assert [w for w in report["warnings"] if w.startswith("marker M029 left out of the skeleton: its joint with")]
+
+
+def test_regression_a_hand_marker_that_turns_about_the_wrist_is_the_hand() -> None:
+    """CMU 85_02: the right hand's one marker (RFIN) turns about the wrist, between the two markers of the
+    wrist's bar (RWRA, RWRB, 147 mm apart), so its distances to them hardly change and it rode with the
+    forearm. In the forearm's moving frame it runs over a sphere about a point of that frame: it is the
+    hand, a segment hung on the forearm, and the wrist found for it lies between the bar's markers (28 mm
+    from their midpoint over the take, nearer it than a quarter of their distance apart)."""
+    src = REALDATA / "cmu" / "85_02.c3d"
+    if not src.is_file():
+        pytest.skip(MISSING)
+    from mocapskel import evaluate, pipeline
+
+    markers = read_markers(src)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the take's own checks (not_converged, limb_asymmetry) warn
+        res = pipeline.fit(markers, pipeline.make_params())
+    skel = res.motion.skeleton
+    short = [lab.split(":")[-1] for lab in skel.labels]
+    g = dict(zip(short, skel.marker_segment.tolist()))
+    hand = g["RFIN"]
+    assert list(skel.marker_segment).count(hand) == 1
+    assert skel.parent[hand] == g["RWRA"] == g["RWRB"]
+    wrist = evaluate.joint_positions(res.motion)[:, hand]
+    mk = [lab.split(":")[-1] for lab in markers.labels]
+    a, b = markers.points[:, mk.index("RWRA")], markers.points[:, mk.index("RWRB")]
+    off = np.linalg.norm(wrist - (a + b) / 2, axis=1) / np.linalg.norm(a - b, axis=1)
+    assert np.nanmedian(off) < 0.25

@@ -236,3 +236,26 @@ def test_a_gait_walks_hips_sit_at_the_pelvis_edge_not_its_middle() -> None:
     res = pipeline.fit(take.markers, pipeline.make_params())
     sc = evaluate.score_motion(res.motion, take.truth)
     assert len(sc.joint_rms_each) == 6 and sc.joint_rms_mm < 25.0, sc.joint_rms_each
+
+
+def test_a_hand_that_turns_about_the_wrist_is_not_absorbed_by_the_forearm() -> None:
+    """Realistic ranges of motion (three seeds): the hand's one marker (LFIN, RFIN) turns about the wrist,
+    whose markers (WRA, WRB) sit on the joint, so its distances to them hardly change and it used to join
+    the forearm's group. It turns about a point of that group, so it is never put with both wrist markers;
+    where it is a segment of its own (five hands of six; seed 2's right one takes the forearm's FRM as its
+    partner) the wrist it hangs on is found within 12 mm rms of the true wrist after inverse kinematics."""
+    from mocapskel import evaluate
+
+    alone = 0
+    for seed in [1, 2, 3]:
+        take, res = _fitted("rom", seed)
+        skel = res.motion.skeleton
+        group = dict(zip(skel.labels, skel.marker_segment.tolist()))
+        each = evaluate.score_motion(res.motion, take.truth).joint_rms_each
+        for side in "LR":
+            fin = group[f"{side}FIN"]
+            assert not fin == group[f"{side}WRA"] == group[f"{side}WRB"], (seed, side)
+            if list(skel.marker_segment).count(fin) == 1:
+                alone += 1
+                assert each[f"{side}Hand"] < 12.0, (seed, side, each)
+    assert alone >= 5

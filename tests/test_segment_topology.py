@@ -346,3 +346,48 @@ def test_real_epicondyle_between_arm_and_forearm_clusters_joins_the_arm():
     g = {lab: int(seg.group[i]) for i, lab in enumerate(seg.markers.labels)}
     assert g["LateralEpicondyleR"] == g["ArmR1"] == g["ArmR2"] == g["ArmR3"]
     assert ["LateralEpicondyleR", "on a joint"] in [list(m) for m in seg.info["moved"]]
+
+
+def _group_and_marker(path_in_frame: np.ndarray, seed: int, noise: float = 1.0) -> np.ndarray:
+    """(K, 4, 3) points: a rigid group of three markers moving at random, and a fourth marker whose place
+    in the group's frame follows ``path_in_frame`` (K, 3); ``noise`` mm on every marker."""
+    from mocapskel.solvers.rotations import rotvec_to_matrix
+
+    rng = np.random.default_rng(seed)
+    K = len(path_in_frame)
+    shape = np.array([[0.0, 0.0, 0.0], [120.0, 0.0, 0.0], [40.0, 90.0, 0.0]])
+    R = rotvec_to_matrix(rng.normal(0, 0.6, (K, 3)))
+    t = rng.normal(0, 300, (K, 3))
+    local = np.concatenate([np.broadcast_to(shape, (K, 3, 3)), path_in_frame[:, None]], axis=1)
+    return np.einsum("kij,knj->kni", R, local) + t[:, None] + rng.normal(0, noise, (K, 4, 3))
+
+
+def test_a_lone_marker_that_turns_about_a_point_of_its_group_is_told_from_skin_on_it():
+    """A hand's marker about the wrist: its distances to the wrist's markers hardly change, but in their
+    frame it runs over a sphere about one point. Turning 25 or 35 degrees either way about a point 90 mm
+    from it, it is a body of its own. Moved as much but off any sphere (skin sliding), it is not; nor is one
+    that turns half the take about that point and half about one 40 mm from it (no one point); nor is a
+    marker that keeps still on the group (1 mm noise: its path fits a sphere of 3 mm about a point beside
+    it, within a level of 2 mm), nor one that turns 3 degrees (a short arc: the fit takes a small sphere)."""
+    from mocapskel.solvers.rotations import rotvec_to_matrix
+    from mocapskel.stages.segment import turns_about_a_point
+
+    rng = np.random.default_rng(0)
+    K = 300
+    centre, arm = np.array([60.0, 40.0, -30.0]), np.array([0.0, 0.0, -90.0])
+    group = np.arange(3)
+    for seed, deg in [(0, 35.0), (1, 25.0)]:
+        turn = rotvec_to_matrix(rng.uniform(-1, 1, (K, 3)) * np.radians(deg) * np.array([1.0, 1.0, 0.3]))
+        P = _group_and_marker(centre + turn @ arm, seed)
+        assert turns_about_a_point(P, 3, group, 1.5)
+        assert not turns_about_a_point(P[:, [0, 1, 3]], 2, group[:2], 1.5)  # two markers fix no frame
+    skin = centre + arm + rng.normal(0, 12.0, (K, 3))  # as far about its place, on no sphere
+    assert not turns_about_a_point(_group_and_marker(skin, 2), 3, group, 1.5)
+    turn = rotvec_to_matrix(rng.uniform(-1, 1, (K, 3)) * np.radians(35.0) * np.array([1.0, 1.0, 0.3]))
+    second = (np.arange(K) >= K // 2)[:, None] * np.array([0.0, 0.0, 40.0])
+    two = centre - second + np.einsum("kij,kj->ki", turn, arm + second)
+    assert not turns_about_a_point(_group_and_marker(two, 6), 3, group, 1.5)
+    for seed in [3, 4]:
+        assert not turns_about_a_point(_group_and_marker(np.broadcast_to(centre + arm, (K, 3)), seed), 3, group, 2.0)
+    small = rotvec_to_matrix(rng.uniform(-1, 1, (K, 3)) * np.radians(3.0))
+    assert not turns_about_a_point(_group_and_marker(centre + small @ arm, 5), 3, group, 2.0)

@@ -31,6 +31,14 @@ MAX_TRIPLES = 400
 CHUNK = 64
 
 
+def frame_path(P: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Every marker of P (K, n, 3), all seen, brought into the moving frame of the markers ``idx``
+    (three or more, not in line; their shape by generalised Procrustes): (K, n, 3)."""
+    shape = procrustes_shape(P[:, idx], ref_frame=0)[0]
+    R, t, _ = kabsch(shape, P[:, idx])
+    return _into_body(P, R, t)
+
+
 def scatter_in_frame(P: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Every marker's rms scatter (n,) about its mean place in the moving frame of the markers ``idx``.
 
@@ -38,9 +46,7 @@ def scatter_in_frame(P: np.ndarray, idx: np.ndarray) -> np.ndarray:
     of ``idx`` (three or more markers, not in line) from their shape (generalised Procrustes)
     to each frame; for the markers ``idx`` themselves the scatter is their rigid-fit residual.
     """
-    shape = procrustes_shape(P[:, idx], ref_frame=0)[0]
-    R, t, _ = kabsch(shape, P[:, idx])
-    Q = _into_body(P, R, t)
+    Q = frame_path(P, idx)
     return np.sqrt(((Q - Q.mean(0)) ** 2).sum(-1).mean(0))
 
 

@@ -17,6 +17,7 @@ tighter than its own group's moves there (:func:`reassign_by_frame`).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import warnings
@@ -25,10 +26,11 @@ import numpy as np
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
-from ..solvers.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
+from ..solvers.partition import best_split, frame_path, frame_scatters, rigid_rms, scatter_in_frame
+from ..solvers.sphere import sphere_lls
 from ..solvers.spectral import eigengap_k, normalized_affinity, spectral_clustering
 
-VERSION = 11
+VERSION = 12
 
 
 @dataclass(frozen=True)
@@ -308,7 +310,7 @@ PARTNER_RATIO = 2.5
 
 def pair_lone_markers(
     std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_join: float, tau_free: float, reach: float,
-    depth: int = 4,
+    depth: int = 4, keep: Callable[[int, np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Give each marker left alone by the rigid groups a segment, where the data allow.
 
@@ -322,7 +324,9 @@ def pair_lone_markers(
     ``depth`` moves). The cheapest chain (sum of the new stds) that leaves nobody
     newly alone wins. A marker still alone that varies against its nearest group by
     less than ``tau_free`` does not move on its own: it joins that group. Markers
-    join or pair only within ``reach`` (mean distance) of each other.
+    join or pair only within ``reach`` (mean distance) of each other. A lone marker does
+    not join a group (it may take a partner from it) for which ``keep(marker, the group's
+    markers)`` holds (it turns on its own against it, see :func:`turns_about_a_point`).
 
     std, mean_d : (M, M) distance std and mean distance; labels : (M,) groups.
     Returns the new labels (numbered by first marker) and the moves made
@@ -346,7 +350,8 @@ def pair_lone_markers(
         for g in np.unique(L):
             if g != L[m]:
                 c = group_cost(m, L, g)
-                if c <= tau_join and (best is None or c < best[0]):
+                if c <= tau_join and (best is None or c < best[0]) and not (
+                        keep is not None and keep(m, np.flatnonzero(L == g))):
                     best = (c, [(m, int(g), "joined")])
         if d == 0:
             return best
@@ -387,7 +392,7 @@ def pair_lone_markers(
         else:
             break
     # still alone: a marker that hardly moves against its nearest group is skin on it
-    lab, more = absorb_lone_markers(std, mean_d, lab, tau_free, reach)
+    lab, more = absorb_lone_markers(std, mean_d, lab, tau_free, reach, keep=keep)
     return lab, moves + more
 
 
@@ -462,11 +467,12 @@ def _other_groups(lab: np.ndarray, m: int) -> list[tuple[int, np.ndarray]]:
 
 
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
-                        reach: float, nearest: bool = False) -> tuple[np.ndarray, list[tuple[int, str]]]:
+                        reach: float, nearest: bool = False,
+                        keep: Callable[[int, np.ndarray], bool] | None = None) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Each marker alone in its group that varies against its nearest group of several markers (nearest
     in mean distance among those with all of them within ``reach``; with ``nearest``: the nearest of
     them within ``reach``) by at most ``tau_free`` (mean std; with ``nearest``: against every member)
-    joins that group ("absorbed").
+    joins that group ("absorbed"), unless ``keep(marker, group's markers)`` says it turns on its own.
     Returns the labels numbered by first marker and the moves."""
     lab = np.array(labels, dtype=int)
     M = lab.size
@@ -475,19 +481,72 @@ def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray,
     moves: list[tuple[int, str]] = []
     sizes = np.bincount(lab)
     for m in [i for i in range(M) if sizes[lab[i]] == 1]:
-        costs = []
-        for g, mem in _other_groups(lab, m):
-            if near[m, mem].any() if nearest else near[m, mem].all():
-                costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g),
-                              float(np.nan_to_num(mean_d[m, mem], nan=np.inf).mean())))
-        if costs:
-            # skin on a body is on it: the group nearest in space, not the one that varies least anywhere
-            # within reach (a real walk's lone thigh marker varied least against the same side's upper arm)
-            c, g, _ = min(costs, key=lambda x: x[2])
-            if c <= tau_free:
+        got = _nearest_group(S, mean_d, lab, m, near, nearest)
+        if got is not None:
+            c, g = got
+            if c <= tau_free and not (keep is not None and keep(m, np.flatnonzero(lab == g))):
                 lab[m] = g
                 moves.append((m, "absorbed"))
     return by_first_marker(lab), moves
+
+
+def _nearest_group(S: np.ndarray, mean_d: np.ndarray, lab: np.ndarray, m: int, near: np.ndarray,
+                   nearest: bool) -> tuple[float, int] | None:
+    """(cost, group) of the group of two or more markers nearest to marker ``m`` in mean distance, among
+    those with all members within reach (``near``; with ``nearest``: any member): its members' mean
+    distance std to ``m`` (with ``nearest``: the largest). None when no group is within reach. Skin on
+    a body is on it: the group nearest in space, not the one that varies least anywhere within reach
+    (a real walk's lone thigh marker varied least against the same side's upper arm)."""
+    costs = []
+    for g, mem in _other_groups(lab, m):
+        if near[m, mem].any() if nearest else near[m, mem].all():
+            costs.append((float(S[m, mem].max() if nearest else S[m, mem].mean()), int(g),
+                          float(np.nan_to_num(mean_d[m, mem], nan=np.inf).mean())))
+    if not costs:
+        return None
+    c, g, _ = min(costs, key=lambda x: x[2])
+    return c, g
+
+
+#: A lone marker turns about a point of its group's frame only if that point is no farther from the group's
+#: nearest marker than this many times the marker's own distance from it (see :func:`turns_about_a_point`).
+#: Measured on the real takes of the shared folders and the generated ranges of motion: markers that turn
+#: about a joint (a hand's about the wrist, a toe's about the foot, a shank's about the ankle, an upper arm's
+#: about the trunk) 0.6-2.4; markers that keep still on their group but for skin wobble, whose paths fit a
+#: sphere of 1-15 mm about a point beside them, 5-150.
+TURN_REACH = 3.0
+
+
+def turns_about_a_point(points: np.ndarray, m: int, group: np.ndarray, level: float) -> bool:
+    """Whether marker ``m`` turns about a point fixed in the moving frame of the markers ``group``, one
+    that its path locates and that could be their joint.
+
+    The stds of distances hide a marker that swings about a joint near the group's markers (a hand's
+    marker about the wrist: its distances to the wrist's markers hardly change however far it turns),
+    so a lone marker that varies too little against its group to be kept by them is tested in the
+    group's frame, on the sampled frames where all are seen. Its path there must
+
+    - lie on a sphere to within the take's own skin-and-noise ``level`` (rms radial residual), which
+      skin sliding over a body does not;
+    - turn about a point that could join the two bodies: no farther from the group's nearest marker
+      than ``TURN_REACH`` times the sphere's radius. A marker that keeps still on its body save for a
+      millimetre or two of wobble also lies on a sphere, a small one about a point beside it, far
+      from the group (and so does a short arc whose radius the path does not fix: the algebraic fit
+      takes a small sphere for it).
+
+    points : (K, M, 3) the sampled frames; group : three or more markers not in line.
+    """
+    if group.size < 3:
+        return False
+    P = _seen_together(points, np.r_[group, m])
+    if P is None:
+        return False
+    Q = frame_path(P, np.arange(group.size))
+    fit = sphere_lls(Q[:, -1])
+    if not fit.ok:
+        return False
+    to_group = float(np.linalg.norm(Q[:, :-1].mean(0) - fit.centre, axis=-1).min())
+    return bool(fit.rms <= level and to_group <= TURN_REACH * fit.radius)
 
 
 #: A marker alone whose distances to the markers of two groups vary at most this fraction as much as those two
@@ -773,7 +832,13 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         np.fill_diagonal(mean_d, 0.0)
         ext = [_extent(mean_d, np.flatnonzero(lab == g)) for g in range(lab.max() + 1) if (lab == g).sum() > 1]
         reach = params.reach * float(np.median(ext)) if ext else np.inf
-        lab, moves = pair_lone_markers(pooled, mean_d, lab, params.join_k * tau, params.free_k * tau, reach)
+        sampled = markers.points[samplings[0]][:, iu]
+
+        def turns(m: int, g: np.ndarray) -> bool:
+            return turns_about_a_point(sampled, m, g, level)
+
+        lab, moves = pair_lone_markers(pooled, mean_d, lab, params.join_k * tau, params.free_k * tau, reach,
+                                       keep=turns)
         if params.motion_frac * size > tau:
             lab = merge_still_groups(pooled, lab, params.motion_frac * size)
         if ext:
@@ -783,7 +848,7 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             # d > sqrt(level R)
             # (the largest segments, a pelvis or a trunk, are two or three times the median group's size)
             reveal = float(np.sqrt(level * np.median(ext)))
-            lab, more = absorb_lone_markers(pooled, mean_d, lab, reveal, 2.0 * reach, nearest=True)
+            lab, more = absorb_lone_markers(pooled, mean_d, lab, reveal, 2.0 * reach, nearest=True, keep=turns)
             moves += more
             lab, more = join_markers_on_joints(pooled, mean_d, lab)
             moves += more
