@@ -1,11 +1,12 @@
 """Clean: remove what optical systems get wrong (Kirk et al. 2005, §3).
 
 - sporadic jumps: samples that leave the marker's own smooth path for a few
-  frames are candidates (off the median of a short window, unless the path is
-  seen whole and smooth over it: a fast curve is no jump); a candidate of a marker seen with two or more rigid
-  partners (markers whose distance to it hardly varies over the take) is a
-  jump only when it leaves those partners (by distance or by the abrupt
-  change of the vectors to them, :func:`~mocapskel.solvers.merge.rigid_jumps`),
+  frames are candidates (off the median of a short window, unless the path
+  is seen whole and smooth over it: a fast curve is no jump); a candidate of
+  a marker seen with two or more rigid partners (markers whose distance to
+  it hardly varies over the take) is a jump only when it leaves those
+  partners (by distance or by the abrupt change of the vectors to them,
+  :func:`~mocapskel.solvers.merge.rigid_jumps`),
   so that fast motion keeps its samples; a marker without two partners in
   view is judged by its path alone. Jumps are turned into gaps;
 - gap edges: a few frames at both ends of every visible run that borders a

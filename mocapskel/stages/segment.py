@@ -468,7 +468,8 @@ def _other_groups(lab: np.ndarray, m: int) -> list[tuple[int, np.ndarray]]:
 
 def absorb_lone_markers(std: np.ndarray, mean_d: np.ndarray, labels: np.ndarray, tau_free: float,
                         reach: float, nearest: bool = False,
-                        keep: Callable[[int, np.ndarray], bool] | None = None) -> tuple[np.ndarray, list[tuple[int, str]]]:
+                        keep: Callable[[int, np.ndarray], bool] | None = None,
+                        ) -> tuple[np.ndarray, list[tuple[int, str]]]:
     """Each marker alone in its group that varies against its nearest group of several markers (nearest
     in mean distance among those with all of them within ``reach``; with ``nearest``: the nearest of
     them within ``reach``) by at most ``tau_free`` (mean std; with ``nearest``: against every member)
