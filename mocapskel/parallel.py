@@ -19,12 +19,14 @@ from __future__ import annotations
 import os
 import pickle
 import selectors
+import signal
 import sys
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
-__all__ = ["Shares", "WorkerLost", "n_threads", "one_blas_thread", "run_blocks", "run_forked"]
+__all__ = ["Shares", "WorkerLost", "defer_signal", "forking", "n_threads", "one_blas_thread", "run_blocks",
+           "run_forked"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -160,12 +162,48 @@ def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
     return results
 
 
+_FORKING = False  # inside os.fork(), its at-fork hooks included (see _fork)
+_DEFERRED: list[int] = []  # signals that arrived then, sent again once the fork is done
+
+
+def forking() -> bool:
+    """Whether this process is inside :func:`os.fork` (its at-fork hooks included), where an exception
+    raised by a signal handler is not raised but printed with its traceback and dropped."""
+    return _FORKING
+
+
+def defer_signal(signum: int) -> None:
+    """Have the signal ``signum``, which arrived while :func:`forking`, sent again to this process once the
+    fork is done (a handler that would raise calls this instead while forking)."""
+    _DEFERRED.append(int(signum))
+
+
 def _fork() -> int:
     """``os.fork()``. Python 3.12+ warns of fork in a process with threads; ours are numpy's BLAS
-    threads, which their library quiesces across a fork, and none of our own."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
-        return os.fork()
+    threads, which their library quiesces across a fork, and none of our own.
+
+    A signal whose handler raises (the command line's SIGTERM and SIGINT) may arrive while the fork runs
+    Python's at-fork hooks (logging releases its lock there), where the exception would be printed and
+    dropped: the handler defers it (:func:`defer_signal`), and once the fork is done the new child is
+    ended and the signal sent again, to be raised here.
+    """
+    global _FORKING
+    _FORKING = True
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*multi-threaded.*fork", category=DeprecationWarning)
+            pid = os.fork()
+    finally:
+        _FORKING = False
+    if pid == 0:
+        _DEFERRED.clear()  # the parent's to deal with
+        return pid
+    if _DEFERRED:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        while _DEFERRED:
+            signal.raise_signal(_DEFERRED.pop(0))
+    return pid
 
 
 def _child(fn, item, r: int, w: int) -> None:

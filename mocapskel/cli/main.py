@@ -16,6 +16,7 @@ import traceback
 
 import click
 
+from .. import parallel
 from ..errors import MocapskelError, interrupt_behind
 
 log = logging.getLogger("mocapskel")
@@ -77,6 +78,9 @@ class Interrupted(BaseException):
 
 def _on_sigterm(signum, frame) -> None:
     _State.pending = signal.SIGTERM
+    if parallel.forking():  # raised in an at-fork hook it would be printed and dropped: raised after the fork
+        parallel.defer_signal(signum)
+        return
     raise Terminated()
 
 
@@ -85,6 +89,9 @@ def _on_sigint(signum, frame) -> None:
     # when a KeyboardInterrupt went through exec() of a string on its way (a dataclass being created by a
     # lazy import, say), whatever sys.exit said
     _State.pending = signal.SIGINT
+    if parallel.forking():
+        parallel.defer_signal(signum)
+        return
     raise Interrupted()
 
 
