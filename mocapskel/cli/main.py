@@ -76,23 +76,27 @@ class Interrupted(BaseException):
     print its blank line before our one-line message (exit code 130)."""
 
 
+def _raise_now(sig: int) -> bool:
+    """Note that ``sig`` arrived; whether its handler raises now. Not inside a fork: raised in an at-fork
+    hook, the exception would be printed and dropped, so the fork sends the signal again once done."""
+    _State.pending = sig
+    if parallel.forking():
+        parallel.defer_signal(sig)
+        return False
+    return True
+
+
 def _on_sigterm(signum, frame) -> None:
-    _State.pending = signal.SIGTERM
-    if parallel.forking():  # raised in an at-fork hook it would be printed and dropped: raised after the fork
-        parallel.defer_signal(signum)
-        return
-    raise Terminated()
+    if _raise_now(signal.SIGTERM):
+        raise Terminated()
 
 
 def _on_sigint(signum, frame) -> None:
     # not KeyboardInterrupt itself: CPython 3.11 kills itself with SIGINT at exit (exit status -2, not 130)
     # when a KeyboardInterrupt went through exec() of a string on its way (a dataclass being created by a
     # lazy import, say), whatever sys.exit said
-    _State.pending = signal.SIGINT
-    if parallel.forking():
-        parallel.defer_signal(signum)
-        return
-    raise Interrupted()
+    if _raise_now(signal.SIGINT):
+        raise Interrupted()
 
 
 def raise_pending() -> None:

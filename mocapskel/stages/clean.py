@@ -214,8 +214,6 @@ def _smooth_around(points: np.ndarray, vis: np.ndarray, f: np.ndarray, m: np.nda
     frames = f[:, None] + np.arange(-h, h + 1)
     inside = ((frames >= 0) & (frames < F)).all(axis=1)
     idx = np.flatnonzero(inside)
-    if idx.size == 0:
-        return out
     fr, mk = frames[idx], m[idx, None]
     seen = vis[fr, mk].all(axis=1)
     idx, fr, mk = idx[seen], fr[seen], mk[seen]

@@ -854,15 +854,15 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             lab, more = join_markers_on_joints(pooled, mean_d, lab)
             moves += more
             if params.absorb_pairs:
-                lab, more = absorb_pairs(markers.points[samplings[0]][:, iu], lab, reveal, mean_d, 2.0 * reach, tau)
+                lab, more = absorb_pairs(sampled, lab, reveal, mean_d, 2.0 * reach, tau)
                 moves += more
             if params.split_nonrigid:
-                lab, splits = split_nonrigid(markers.points[samplings[0]][:, iu], pooled, lab, tau, reveal,
+                lab, splits = split_nonrigid(sampled, pooled, lab, tau, reveal,
                                              np.random.default_rng(params.seed))
                 split_info = [{"parts": [[markers.labels[iu[i]] for i in part] for part in parts],
                                "rigid_rms_mm": round(r, 3)} for parts, r in splits]
             if params.reframe:
-                lab, more = reassign_by_frame(markers.points[samplings[0]][:, iu], lab)
+                lab, more = reassign_by_frame(sampled, lab)
                 moves += more
         split = [[markers.labels[iu[i]], how] for i, how in moves]
         si = 0
