@@ -97,6 +97,57 @@ def case(markerset: str, motion: str, seed: int, frames: int, write: str | None)
     }
 
 
+# a limb out of view, as when the subject walks into or out of the capture volume, or turns an arm behind
+# the body: every marker of the left forearm and hand over the take's first fifth, of the right foot over its
+# last fifth
+HIDDEN = (("LELB", "LFRM", "LWRA", "LWRB", "LFIN"), ("RHEE", "RTOE", "RMT5"))
+HIDDEN_CASES = [("cmu41", m, s) for m in ("walk", "run", "kick") for s in (1, 2, 3)]
+
+
+def hidden_case(markerset: str, motion: str, seed: int, frames: int) -> dict:
+    """Fit a realistic take with :data:`HIDDEN` limbs out of view; where the skeleton puts their markers."""
+    from mocapskel import evaluate, pipeline
+    from mocapskel.synth.presets import make, realistic
+
+    take = make(realistic(seed=seed, frames=frames, motion=motion, markerset=markerset))
+    labels = list(take.markers.labels)
+    pts = take.markers.points.copy()
+    hidden = np.zeros(pts.shape[:2], dtype=bool)
+    k = frames // 5
+    hidden[:k, [labels.index(m) for m in HIDDEN[0]]] = True
+    hidden[frames - k:, [labels.index(m) for m in HIDDEN[1]]] = True
+    pts[hidden] = np.nan
+    res = pipeline.fit(replace(take.markers, points=pts), pipeline.make_params(up="z", units="mm"))
+    mot = res.motion
+    skel = mot.skeleton
+    J = evaluate.joint_positions(mot)
+    err = []
+    for m, lab in enumerate(skel.labels):
+        s = int(skel.marker_segment[m])
+        i = labels.index(lab)
+        if s < 0 or not hidden[:, i].any():
+            continue
+        x = J[hidden[:, i], s] + np.einsum("fij,j->fi", mot.rot[hidden[:, i], s], skel.marker_local[m])
+        err.append(np.linalg.norm(x - take.markers.points[hidden[:, i], i], axis=1))
+    e = np.concatenate(err) if err else np.full(1, np.nan)
+    sc = evaluate.score_motion(mot, take.truth)
+    steps = [w for w in res.report["warnings"] if w.startswith("check joint_step") or w.startswith("check rotation_flip")]
+    return {"hidden_rms_mm": float(np.sqrt(np.mean(e**2))), "hidden_p95_mm": float(np.percentile(e, 95)),
+            "hidden_markers": len(err), "joint_rms_mm": sc.joint_rms_mm, "step_warnings": len(steps)}
+
+
+def hidden() -> str:
+    rows = []
+    for markerset, motion, seed in HIDDEN_CASES:
+        r = run_isolated("realistic", "--hidden-case", markerset, motion, str(seed), str(FRAMES))
+        rows.append([markerset, motion, seed, f"{r['hidden_markers']} / {sum(map(len, HIDDEN))}",
+                     round(r["hidden_rms_mm"], 1), round(r["hidden_p95_mm"], 1), round(r["joint_rms_mm"], 1),
+                     r["step_warnings"]])
+        print(f"  {rows[-1]}", file=sys.stderr)
+    return table(["marker set", "motion", "seed", "hidden markers on the skeleton", "their rms error (mm)",
+                  "95th percentile (mm)", "joint rms after IK (mm)", "jump and flip warnings"], rows)
+
+
 def fits() -> str:
     rows = []
     for markerset, motion, seed in CASES:
@@ -152,7 +203,15 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--case", nargs=4, metavar=("MARKERSET", "MOTION", "SEED", "FRAMES"))
     ap.add_argument("--write", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--hidden-case", nargs=4, metavar=("MARKERSET", "MOTION", "SEED", "FRAMES"))
+    ap.add_argument("--only-hidden", action="store_true", help="only the table of limbs out of view")
     a = ap.parse_args()
+    if a.hidden_case:
+        print(json.dumps(hidden_case(a.hidden_case[0], a.hidden_case[1], int(a.hidden_case[2]), int(a.hidden_case[3]))))
+        return
+    if a.only_hidden:
+        print(hidden())
+        return
     if a.case:
         out = case(a.case[0], a.case[1], int(a.case[2]), int(a.case[3]), a.write)
         if out is not None:
@@ -166,6 +225,11 @@ def main() -> None:
     print("\nSkin motion, generated against real CMU takes (same labels; generated: mean of seeds 1-3; "
           "1 mm generated noise adds ~1.4 mm to every entry):\n")
     print(skin_vs_real())
+    print("\nA limb out of view (the same takes; every marker of the left forearm and hand removed over the first "
+          "fifth of the take, of the right foot over its last fifth, as when the subject walks into or out of the "
+          "volume): how far from where they truly were the fitted skeleton puts the removed markers, over the "
+          "frames they are missing. Joint rms over the whole take.\n")
+    print(hidden())
 
 
 if __name__ == "__main__":

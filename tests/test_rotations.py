@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from mocapskel.solvers.rotations import (
     ORDERS,
     euler_to_matrix,
+    hold_unobserved,
     matrix_to_euler,
     matrix_to_quat,
     matrix_to_rotvec,
@@ -17,6 +18,7 @@ from mocapskel.solvers.rotations import (
     quat_to_matrix,
     rotvec_to_matrix,
     slerp_fill,
+    slerp_fill_joints,
     unwrap_euler,
 )
 
@@ -264,6 +266,64 @@ def test_slerp_fill_takes_the_short_way_round() -> None:
     R = np.stack([a, np.full((3, 3), np.nan), b])
     mid = slerp_fill(R, np.array([True, False, True]))[1]
     np.testing.assert_allclose(mid, _elementary("Z", -30.0), atol=1e-12)
+
+
+def _random_tracks(seed: int, F: int, S: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, F)[:, None, None]
+    rv = rng.normal(0, 0.8, (1, S, 3)) + 0.8 * np.sin(2 * np.pi * rng.uniform(0.3, 1.5, (1, S, 3)) * t
+                                                     + rng.uniform(0, 6.3, (1, S, 3)))
+    return rotvec_to_matrix(rv)
+
+
+def test_slerp_fill_joints_slerps_joint_angles_and_holds_them_at_the_ends() -> None:
+    from scipy.spatial.transform import Slerp
+
+    F, parent = 80, np.array([2, 0, -1, 1])  # a chain 2 -> 0 -> 1 -> 3, listed children first
+    R = _random_tracks(3, F, 4)
+    valid = np.ones((F, 4), dtype=bool)
+    valid[:12, 1] = False  # the start
+    valid[30:45, 1] = False  # the middle
+    valid[:12, 3] = valid[25:50, 3] = False  # the child, over its parent's gaps
+    valid[70:, 3] = False  # the end
+    valid[5:9, 2] = False  # the root: slerped in the lab
+    R_in = np.where(valid[..., None, None], R, np.nan)
+    out = slerp_fill_joints(parent, R_in, valid)
+    np.testing.assert_array_equal(out[valid], R[valid])
+    assert np.isnan(R_in[~valid]).all()  # the input is not modified
+    np.testing.assert_allclose(out[5:9, 2], slerp_fill(R_in[:, 2], valid[:, 2])[5:9], atol=1e-12)
+    for s in (1, 3):  # the joint's rotation, as scipy slerps it between the valid frames, held at the ends
+        p = parent[s]
+        rel_true = np.swapaxes(R[:, p], -1, -2) @ R[:, s]  # parents are valid where s is
+        key = np.flatnonzero(valid[:, s])
+        want = Slerp(key, Rotation.from_matrix(rel_true[key]))(np.clip(np.arange(F), key[0], key[-1])).as_matrix()
+        np.testing.assert_allclose(np.swapaxes(out[:, p], -1, -2) @ out[:, s], want, atol=1e-9)
+    never = valid.copy()
+    never[:, 3] = False
+    o = slerp_fill_joints(parent, R, never)
+    np.testing.assert_array_equal(o[:, 3], o[:, 1])  # its parent's
+    with pytest.raises(ValueError, match="not a tree"):
+        slerp_fill_joints(np.array([1, 0]), R[:, :2], valid[:, :2])
+
+
+def test_hold_unobserved_fills_only_limbs_with_nothing_seen_below() -> None:
+    F, parent = 60, np.array([-1, 0, 1, 0, 3])  # root; a chain 1 -> 2; a chain 3 -> 4
+    R = _random_tracks(4, F, 5)
+    seen = np.ones((F, 5), dtype=bool)
+    seen[10:30, 1] = False  # held by its seen child: left as it is
+    seen[20:40, 3:5] = False  # a whole limb: its joints keep their angles
+    seen[:, 0] = False  # a root with no markers of its own: left as it is
+    out = hold_unobserved(parent, R, seen)
+    np.testing.assert_array_equal(out[:, :3], R[:, :3])
+    np.testing.assert_array_equal(out[:20], R[:20])
+    np.testing.assert_array_equal(out[40:], R[40:])
+    gap = np.arange(20, 40)
+    for s in (3, 4):
+        rel = np.swapaxes(R[:, parent[s]], -1, -2) @ R[:, s]
+        got = np.swapaxes(out[gap, parent[s]], -1, -2) @ out[gap, s]
+        np.testing.assert_allclose(got, slerp_fill(np.where(seen[:, 3:4, None], rel, np.nan), seen[:, 3])[gap],
+                                   atol=1e-12)
+        assert not np.allclose(got, rel[gap], atol=1e-3)  # the track's own rotations there were not joint slerps
 
 
 def test_project_to_so3() -> None:

@@ -643,12 +643,14 @@ def track(
     markers, held only by their joints), a good start decides which solution
     IK finds. Starting from the key poses, frames ever closer together are
     solved — every ``stride / factor``-th frame, the start and the rotation
-    prior slerped between the frames already solved — until every frame is.
+    prior slerped between the frames already solved, joint by joint
+    (:func:`~mocapskel.solvers.rotations.slerp_fill_joints`) — until every
+    frame is.
     Returns :class:`~mocapskel.solvers.ik.IKResult`-like (rot (F, S, 3, 3),
     root_pos (F, 3), residual (F, M)).
     """
     from .ik import solve_ik
-    from .rotations import slerp_fill
+    from .rotations import slerp_fill_joints
 
     F, M, _ = observed.shape
     S = len(parent)
@@ -668,9 +670,7 @@ def track(
             todo = ~known | np.isin(np.arange(F), key_frames)  # the key frames get residuals too
         frames = np.flatnonzero(todo | known)
         kf = known[frames]
-        R0 = rot[frames].copy()
-        for s in range(S):
-            R0[:, s] = slerp_fill(R0[:, s], kf)
+        R0 = slerp_fill_joints(parent, rot[frames], np.broadcast_to(kf[:, None], (frames.size, S)))
         p0 = np.stack([np.interp(frames, frames[kf], root[frames[kf], i]) for i in range(3)], axis=1)
         new = np.flatnonzero(todo[frames])
         for a in range(0, new.size, chunk):

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..parallel import run_blocks
 from .rigid import _adj4, kabsch
+from .rotations import fill_joint
 
 __all__ = ["IKResult", "segment_poses", "solve_ik"]
 
@@ -368,48 +369,6 @@ def _c_is_rotation(R: np.ndarray) -> bool:
         E[i, i] -= 1.0
     det = _c_dot(R[0], _c_cross(R[1], R[2]))
     return bool(np.abs(E).max(initial=0.0) < 1e-9 and np.all(det > 0))
-
-
-def _slerp_fill(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill rotations over time: slerp between the nearest valid frames, hold at the ends.
-
-    Parameters
-    ----------
-    R : (F, K, 3, 3) ndarray
-        Rotations; values at invalid frames are ignored.
-    valid : (F, K) ndarray of bool
-
-    Returns
-    -------
-    (F, K, 3, 3) ndarray
-        Filled rotations; NaN for columns ``k`` with no valid frame.
-    """
-    F = R.shape[0]
-    q = np.where(valid[..., None], _mat_to_quat(np.where(valid[..., None, None], R, np.eye(3))), 0.0)
-    fr = np.arange(F)[:, None]
-    prev = np.maximum.accumulate(np.where(valid, fr, -1), axis=0)
-    nxt = np.minimum.accumulate(np.where(valid, fr, F)[::-1], axis=0)[::-1]
-    has_p, has_n = prev >= 0, nxt < F
-    pi, ni = np.clip(prev, 0, F - 1), np.clip(nxt, 0, F - 1)
-    cols = np.arange(R.shape[1])[None, :]
-    qa, qb = q[pi, cols], q[ni, cols]
-    qb = np.where((qa * qb).sum(-1, keepdims=True) < 0, -qb, qb)
-    span = np.where(has_p & has_n & (nxt > prev), nxt - prev, 1)
-    alpha = np.where(has_p & has_n, (fr - prev) / span, 0.0)
-    alpha = np.where(~has_p, 1.0, alpha)  # before the first valid frame: hold the next
-    c = np.clip((qa * qb).sum(-1), -1.0, 1.0)
-    th = np.arccos(c)
-    st = np.sin(th)
-    lin = st < 1e-6
-    sts = np.where(lin, 1.0, st)
-    wa = np.where(lin, 1 - alpha, np.sin((1 - alpha) * th) / sts)
-    wb = np.where(lin, alpha, np.sin(alpha * th) / sts)
-    qi = wa[..., None] * qa + wb[..., None] * qb
-    nq = np.linalg.norm(qi, axis=-1, keepdims=True)
-    qi = qi / np.where(nq > 0, nq, 1.0)
-    out = _quat_to_mat(qi)
-    out[~(has_p | has_n)] = np.nan
-    return np.where(valid[..., None, None], R, out)
 
 
 def _interp_fill(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -814,9 +773,11 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
     2. Twice, for frames still unsolved: Kabsch of the segment's markers plus
        its joints placed by the neighbours solved in that frame (the parent's
        pose places the segment's origin, a child's pose places the child's joint).
-    3. Segments solved in some frames: slerp over time between solved frames
-       (held at the ends). Segments never solved: the parent's rotation
-       (identity for the root).
+    3. Segments solved in some frames, parents first: the rotation relative
+       to the parent (the joint's rotation) slerped over time between solved
+       frames (held at the ends), so that a limb the data lose keeps its joint
+       angles and moves with the body; the root's own rotation slerped.
+       Segments never solved: the parent's rotation (identity for the root).
     4. Frames still unsolved where the available points give one direction
        (two points, or collinear ones): the smallest rotation of the step-3
        rotation that matches that direction.
@@ -873,10 +834,9 @@ def _initial_rotations(model: _Model, yt: np.ndarray, w: np.ndarray) -> np.ndarr
             Rk[idx, s], tk[idx, s] = R2[ok], t2[ok]
             solved[idx, s] = True
     # steps 3 and 4, parents first
-    Rf = _slerp_fill(Rk, solved)
+    Rf = Rk.copy()
     for s in range(S):
-        if not solved[:, s].any():
-            Rf[:, s] = Rf[:, t.par[s]] if t.par[s] >= 0 else np.eye(3)
+        Rf[:, s] = fill_joint(Rf[:, t.par[s]] if t.par[s] >= 0 else None, Rk[:, s], solved[:, s])
         todo = ~solved[:, s]
         if not todo.any():
             continue
@@ -958,9 +918,9 @@ def solve_ik(
         segment, Kabsch of its markers where at least 3 are seen and spread
         across their main axis by at least 5% of their extent along it;
         else Kabsch of its markers plus the joints placed by the neighbouring
-        segments solved in that frame; else slerp over time between such
-        frames (held at the ends) or, for a segment never solved, its
-        parent's rotation; finally, where the available points give a single
+        segments solved in that frame; else its rotation relative to its
+        parent slerped over time between such frames (held at the ends) or,
+        for a segment never solved, its parent's rotation; finally, where the available points give a single
         direction, the smallest rotation of that guess matching it. So the
         prior agrees with the data where the data determine the rotation,
         and fills gaps and undetermined twists smoothly. Where it is only

@@ -39,6 +39,9 @@ __all__ = [
     "quat_to_matrix",
     "matrix_to_quat",
     "slerp_fill",
+    "slerp_fill_joints",
+    "fill_joint",
+    "hold_unobserved",
     "project_to_so3",
 ]
 
@@ -463,3 +466,111 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
         U[:, :, 2] *= d[:, None]
         out[ok] = U @ Vt
     return out.reshape(lead + (3, 3))
+
+
+
+def _parents_first(parent: np.ndarray) -> np.ndarray:
+    """Segment indices ordered so that every parent comes before its children."""
+    S = len(parent)
+    depth = np.zeros(S, dtype=int)
+    for s in range(S):
+        a, k = s, 0
+        while parent[a] >= 0:
+            a, k = int(parent[a]), k + 1
+            if k > S:
+                raise ValueError("parent is not a tree")
+        depth[s] = k
+    return np.argsort(depth, kind="stable")
+
+
+def slerp_fill_joints(parent: np.ndarray, rot: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill a tree's rotation tracks where they are not valid, as joint angles.
+
+    Where segment ``s`` is not valid, its rotation relative to its parent
+    (its joint's rotation) is slerped over time between the nearest frames
+    where ``s`` is valid, or held from the nearest one before the first or
+    after the last, and composed with the parent's (already filled)
+    rotation: a limb with no data keeps its joint angles and moves with the
+    body instead of staying fixed in the lab. A root with invalid frames is
+    filled as :func:`slerp_fill` does; a segment never valid takes its
+    parent's rotation (the identity for a root). Valid entries are returned
+    unchanged.
+
+    Parameters
+    ----------
+    parent : (S,) int array_like
+        Parent of each segment, -1 for the root (a tree, any order).
+    rot : (F, S, 3, 3) array_like
+        Segment rotations in the lab frame; only valid ones are read.
+    valid : (F, S) array_like of bool
+
+    Returns
+    -------
+    (F, S, 3, 3) ndarray
+        A new array.
+    """
+    parent = np.asarray(parent, dtype=int)
+    R = np.array(rot, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    S = len(parent)
+    if R.ndim != 4 or R.shape[1:] != (S, 3, 3) or valid.shape != R.shape[:2]:
+        raise ValueError(f"need rot (F, {S}, 3, 3) and valid (F, {S}), got {R.shape} and {valid.shape}")
+    for s in _parents_first(parent):
+        p = int(parent[s])
+        R[:, s] = fill_joint(R[:, p] if p >= 0 else None, R[:, s], valid[:, s])
+    return R
+
+
+def fill_joint(parent_rot: np.ndarray | None, rot: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """One segment's rotation track (F, 3, 3) filled where not ``valid`` (F,), as joint angles.
+
+    With the parent's track ``parent_rot`` (F, 3, 3), as :func:`slerp_fill_joints`
+    fills a segment; without (a root), as :func:`slerp_fill`. Never valid: the
+    parent's rotation, or the identity. Returns a new array.
+    """
+    valid = np.asarray(valid, dtype=bool)
+    R = np.array(rot, dtype=np.float64)
+    if valid.all():
+        return R
+    if not valid.any():
+        return np.array(parent_rot, dtype=np.float64) if parent_rot is not None else np.tile(np.eye(3), (len(R), 1, 1))
+    if parent_rot is None:
+        return slerp_fill(R, valid)
+    rel = slerp_fill(np.swapaxes(parent_rot, -1, -2) @ R, valid)
+    R[~valid] = parent_rot[~valid] @ rel[~valid]
+    return R
+
+
+def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Rotations of a tree's unobserved stretches, filled as joint angles.
+
+    A segment is observed in a frame when a marker of it or of any segment
+    below it is seen there; where it is not, nothing in the data holds its
+    rotation or those of the segments below it, and its joint's rotation is
+    filled as :func:`slerp_fill_joints` does. Observed frames, segments never
+    observed and the root are returned unchanged.
+
+    Parameters
+    ----------
+    parent : (S,) int array_like
+        Parent of each segment, -1 for the root (a tree, any order).
+    rot : (F, S, 3, 3) array_like
+        Segment rotations in the lab frame.
+    seen : (F, S) array_like of bool
+        Whether any marker of the segment itself is seen in the frame.
+
+    Returns
+    -------
+    (F, S, 3, 3) ndarray
+        A new array.
+    """
+    parent = np.asarray(parent, dtype=int)
+    observed = np.array(seen, dtype=bool)
+    if observed.shape != np.shape(rot)[:2] or observed.shape[1:] != parent.shape:
+        raise ValueError(f"need rot (F, S, 3, 3) and seen (F, S) for S = {len(parent)}")
+    for s in _parents_first(parent)[::-1]:  # children first: a segment is observed where anything below it is
+        if parent[s] >= 0:
+            observed[:, parent[s]] |= observed[:, s]
+    never = ~observed.any(0)
+    observed[:, never | (parent < 0)] = True  # left as they are
+    return slerp_fill_joints(parent, rot, observed)

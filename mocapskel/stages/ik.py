@@ -1,9 +1,13 @@
 """IK: per-frame segment rotations and root translation that best fit the markers.
 
 Started from per-segment Horn/Kabsch fits of markers and joint centres
-(gaps bridged by slerp), then refined jointly for the whole skeleton by a
-batched Gauss–Newton over all frames at once. Segments with 1–2 markers are
-held by their joints; gaps are filled by the skeleton.
+(gaps bridged by slerping the joints' rotations), then refined jointly for
+the whole skeleton by a batched Gauss–Newton over all frames at once.
+Segments with 1–2 markers are held by their joints; gaps are filled by the
+skeleton. Where nothing of a limb is seen (no marker on it or below it), its
+joints keep their angles, slerped across the stretch or held at the take's
+ends (:func:`~mocapskel.solvers.rotations.hold_unobserved`): the limb moves
+with the body instead of staying fixed in the lab.
 
 When some segment carries fewer than 3 markers, its rotation about the line
 of its markers is fixed only through its joints, and a start from the joints
@@ -11,7 +15,8 @@ stage's centres (tens of mm off for such segments) leads IK to the wrong
 twist in many frames. Such a skeleton's refined poses (the rigid stage's
 ``pose_frames``) are then the start instead: IK is solved coarse to fine in
 time from them (:func:`~mocapskel.solvers.calibrate.track`), each frame
-started and held by the slerp of the frames already solved around it.
+started and held by the slerp of the joints' rotations of the frames already
+solved around it.
 """
 from __future__ import annotations
 
@@ -23,9 +28,9 @@ from ..artifacts import Motion, Skeleton, markers_of
 from ..errors import DataError
 from ..solvers.calibrate import track
 from ..solvers.ik import segment_poses, solve_ik, unflip
-from ..solvers.rotations import matrix_to_rotvec, rotvec_to_matrix
+from ..solvers.rotations import hold_unobserved, slerp_fill_joints
 
-VERSION = 5
+VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -72,7 +77,7 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
     root_pos = np.full((F, 3), np.nan)
     never = ~ok.any(0)
     rot[:, never] = np.eye(3)
-    _fill_gaps(rot, ok | never)
+    rot = slerp_fill_joints(skel.parent, rot, ok | never)
     if ok[:, root].any():
         fr = np.flatnonzero(ok[:, root])
         p = np.einsum("fij,j->fi", rot[:, root], skel.origin[root]) + t[:, root]
@@ -88,29 +93,6 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
             raise DataError("the root segment is never seen — cannot place the skeleton", None)
         root_pos = _interp_frames(root_pos, fr)
     return rot, root_pos
-
-
-def _fill_gaps(rot: np.ndarray, ok: np.ndarray) -> None:
-    """Fill rotations (F, S, 3, 3) in place where ``ok`` (F, S) is False, as
-    :func:`~mocapskel.solvers.rotations.slerp_fill` does per segment (slerp between
-    the nearest valid frames, held at the ends); every segment has a valid frame."""
-    F = rot.shape[0]
-    if ok.all():
-        return
-    fr = np.arange(F)[:, None]
-    prev = np.maximum.accumulate(np.where(ok, fr, -1), axis=0)
-    nxt = np.minimum.accumulate(np.where(ok, fr, F)[::-1], axis=0)[::-1]
-    f, s = np.nonzero(~ok)
-    p, n = prev[f, s], nxt[f, s]
-    head, tail = p < 0, n >= F
-    rot[f[head], s[head]] = rot[n[head], s[head]]
-    rot[f[tail], s[tail]] = rot[p[tail], s[tail]]
-    inner = ~(head | tail)
-    f, s, p, n = f[inner], s[inner], p[inner], n[inner]
-    if f.size:
-        Rp = rot[p, s]
-        rel = matrix_to_rotvec(np.swapaxes(Rp, -1, -2) @ rot[n, s])
-        rot[f, s] = Rp @ rotvec_to_matrix(((f - p) / (n - p))[:, None] * rel)
 
 
 def _interp_frames(x: np.ndarray, frames: np.ndarray) -> np.ndarray:
@@ -158,6 +140,11 @@ def solve(
         rot, root_pos, resid, flips = unflip(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, points,
                                              rot, root_pos, resid, max_step_deg=max_step_deg, iterations=iterations,
                                              max_run=max(2, int(round(0.5 * rate))) if rate and rate > 0 else 60)
+    # stretches where nothing of a limb is seen: its joints keep their angles (slerped across, held at the ends)
+    mseen = np.isfinite(points).all(-1)[:, skel.marker_segment >= 0]
+    sseen = np.zeros((F, len(skel.parent)), dtype=bool)
+    np.logical_or.at(sseen.T, skel.marker_segment[skel.marker_segment >= 0], mseen.T)
+    rot = hold_unobserved(skel.parent, rot, sseen)
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
         solved = np.ones(F, dtype=bool)

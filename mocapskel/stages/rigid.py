@@ -22,7 +22,7 @@ from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
 
-VERSION = 21
+VERSION = 22
 
 
 @dataclass(frozen=True)
@@ -524,11 +524,12 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
     if anchor is not None and skel.pose_frames is not None and np.array_equal(skel.pose_frames, use):
         rot, root = skel.pose_rot, skel.pose_root  # a refinement's own poses on these frames
         if hold is None:
-            hold = _hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot, params.hinge_ratio) if params.hold_hinges else {}
+            hold = (_hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot, params.hinge_ratio,
+                                _segments_seen(anchor, pts[use])) if params.hold_hinges else {})
     else:
         start = solve(skel, pts[use], centres[use])
         rot, root = start.rot, start.root_pos
-        hold = _hinge_axes(skel, start.rot, params.hinge_ratio) if params.hold_hinges else {}
+        hold = _hinge_axes(skel, start.rot, params.hinge_ratio, _segments_seen(skel, pts[use])) if params.hold_hinges else {}
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           rot, root, ref_frame=ref,
                           iterations=params.refine_iterations if iterations is None else iterations,
@@ -542,11 +543,29 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos), hold
 
 
-def _relative_rotations(rot: np.ndarray, p: int, c: int, least: int = 10) -> np.ndarray | None:
+def _segments_seen(skel: Skeleton, pts: np.ndarray) -> np.ndarray:
+    """(F, S) whether any marker of each segment is seen in each frame of ``pts`` (F, M, 3) (markers past
+    ``pts``'s M, added to the skeleton without data, are never seen)."""
+    seen = np.zeros((pts.shape[0], len(skel.names)), dtype=bool)
+    seg = skel.marker_segment[: pts.shape[1]]
+    on = np.flatnonzero(seg >= 0)
+    np.logical_or.at(seen.T, seg[on], np.isfinite(pts[:, on]).all(-1).T)
+    return seen
+
+
+def _relative_rotations(rot: np.ndarray, p: int, c: int, seen: np.ndarray | None = None,
+                        least: int = 10) -> np.ndarray | None:
     """``R_p^T R_c`` of poses ``rot`` (F, S, 3, 3) on the frames where both are known, or None when they
-    are fewer than ``least`` (too few to tell how a joint turns)."""
+    are fewer than ``least`` (too few to tell how a joint turns).
+
+    seen : (F, S) whether each segment has a marker seen in each frame (:func:`_segments_seen`): frames
+    where either has none are left out (IK filled its pose there: a guess, not a measurement).
+    """
     rel = np.swapaxes(rot[:, p], 1, 2) @ rot[:, c]
-    rel = rel[np.isfinite(rel).all((1, 2))]
+    ok = np.isfinite(rel).all((1, 2))
+    if seen is not None:
+        ok &= seen[:, p] & seen[:, c]
+    rel = rel[ok]
     return rel if len(rel) >= least else None
 
 
@@ -651,6 +670,7 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     joint turns about, so the poses still fit.
     """
     R = skel.pose_rot
+    vis = None if skel.pose_frames is None else _segments_seen(skel, skel.joints.topology.segments.markers.points[skel.pose_frames])
     pos = _rest_markers(skel)
     ok_m = np.isfinite(pos).all(1)
     if ok_m.sum() < 3:
@@ -662,7 +682,7 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
         p = int(skel.parent[c])
         if skel.parent[p] < 0 or not (skel.parent == c).any():
             continue  # the root or a leaf on one side: one limb to measure a half-width on
-        rel = _relative_rotations(R, p, int(c))
+        rel = _relative_rotations(R, p, int(c), vis)
         if rel is None:
             continue
         J = origin[c]
@@ -874,6 +894,7 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         seen = float(level) ** 2
     R = skel.pose_rot
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
+    vis = _segments_seen(skel, pts)
     base = None
     pos = _rest_markers(skel)
     ok_m = np.isfinite(pos).all(1)
@@ -892,11 +913,11 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         dc = float(np.linalg.norm(pos[mk].mean(0) - J))
         if not dc < float(np.linalg.norm(pos[mp].mean(0) - J)):
             continue  # the child's markers are no nearer the joint than the parent's
-        rel = _relative_rotations(R, p, int(c))
+        rel = _relative_rotations(R, p, int(c), vis)
         if rel is None:
             continue
         if held is None:
-            held = _hinge_axes(skel, R, hinge_ratio)
+            held = _hinge_axes(skel, R, hinge_ratio, vis)
         rv = _relative_rotvecs(rel)
         ax = held.get(int(c))
         if ax is None:
@@ -1037,7 +1058,8 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
     return out
 
 
-def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int, np.ndarray]:
+def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float, seen: np.ndarray | None = None
+                ) -> dict[int, np.ndarray]:
     """{child segment: hinge axis (rest-pose axes)} of the joints whose centre the markers hardly fix
     along one axis: those the joints stage placed as hinges, and those SCoRE fixed in full whose
     relative rotations ``R_parent^T R_child`` of ``rot`` (F, S, 3, 3) turn about one axis (spread
@@ -1045,7 +1067,8 @@ def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int
     ankle, which SCoRE solves by least squares along an axis its motion barely fixes.
 
     The axis is the direction the relative rotations leave most nearly fixed: the eigenvector of
-    SCoRE's ``[[I, -M], [-M^T, I]]`` (``M`` their mean) of the smallest eigenvalue.
+    SCoRE's ``[[I, -M], [-M^T, I]]`` (``M`` their mean) of the smallest eigenvalue. ``seen``: as
+    :func:`_relative_rotations` takes it.
     """
     joints = skel.joints
     per = joints.info.get("per_joint") or []
@@ -1056,7 +1079,7 @@ def _hinge_axes(skel: Skeleton, rot: np.ndarray, hinge_ratio: float) -> dict[int
             continue  # a joint of a one- or two-marker segment: its start is too rough to hold
         c = int(b) if skel.parent[int(b)] == int(a) else int(a)
         p = int(skel.parent[c])
-        rel = _relative_rotations(rot, p, c)
+        rel = _relative_rotations(rot, p, c, seen)
         if rel is None:
             continue
         if not placed and _hinge_direction(rel, hinge_ratio) is None:
