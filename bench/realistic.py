@@ -225,7 +225,7 @@ def main() -> None:
     print("\nSkin motion, generated against real CMU takes (same labels; generated: mean of seeds 1-3; "
           "1 mm generated noise adds ~1.4 mm to every entry):\n")
     print(skin_vs_real())
-    print("\nA limb out of view (the same takes; every marker of the left forearm and hand removed over the first "
+    print("\nA limb out of view (the cmu41 walks, runs and kicks above; every marker of the left forearm and hand removed over the first "
           "fifth of the take, of the right foot over its last fifth, as when the subject walks into or out of the "
           "volume): how far from where they truly were the fitted skeleton puts the removed markers, over the "
           "frames they are missing. Joint rms over the whole take.\n")

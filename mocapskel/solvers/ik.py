@@ -920,8 +920,9 @@ def solve_ik(
         else Kabsch of its markers plus the joints placed by the neighbouring
         segments solved in that frame; else its rotation relative to its
         parent slerped over time between such frames (held at the ends) or,
-        for a segment never solved, its parent's rotation; finally, where the available points give a single
-        direction, the smallest rotation of that guess matching it. So the
+        for a segment never solved, its parent's rotation; finally, where
+        the available points give a single direction, the smallest rotation
+        of that guess matching it. So the
         prior agrees with the data where the data determine the rotation,
         and fills gaps and undetermined twists smoothly. Where it is only
         a guess (gaps, chains of poorly marked segments) it pulls the
