@@ -449,7 +449,7 @@ def _info(obj: Any) -> None:
     for key in ("rms_mm", "filled_fraction"):
         if info.get(key) is not None:
             _need(isinstance(info[key], (int, float)) and not isinstance(info[key], bool), f"{obj.kind}.info['{key}'] is not a number")
-    for key in ("rms_mm_per_segment", "refined", "clean", "merge_ids", "excluded_why", "renamed"):
+    for key in ("rms_mm_per_segment", "refined", "clean", "merge_ids", "excluded_why", "renamed", "out_of_view_frames"):
         if info.get(key) is not None:
             _need(isinstance(info[key], dict), f"{obj.kind}.info['{key}'] is not a JSON object")
 

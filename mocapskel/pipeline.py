@@ -395,6 +395,7 @@ def solve(
             "marker_rms_mm": motion.info.get("rms_mm"),
             "marker_rms_mm_per_segment": motion.info.get("rms_mm_per_segment", {}),
             "filled_fraction": motion.info.get("filled_fraction"),
+            "out_of_view_frames": motion.info.get("out_of_view_frames", {}),
         },
         "export": bvh.report(),
         "seconds": {k: round(v, 4) for k, v in seconds.items()},

@@ -86,6 +86,7 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
         "marker_rms_mm": _f(motion.info.get("rms_mm")),
         "marker_rms_mm_per_segment": {k: _f(v) for k, v in motion.info.get("rms_mm_per_segment", {}).items()},
         "filled_fraction": _f(motion.info.get("filled_fraction")),
+        "out_of_view_frames": motion.info.get("out_of_view_frames", {}),
         "unflip": motion.info.get("unflip"),
     }
     rep["seconds"] = {k: round(float(v), 4) for k, v in run.seconds.items()}

@@ -42,6 +42,7 @@ __all__ = [
     "slerp_fill_joints",
     "fill_joint",
     "hold_unobserved",
+    "observed_below",
     "project_to_so3",
 ]
 
@@ -565,12 +566,23 @@ def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray) -> np
         A new array.
     """
     parent = np.asarray(parent, dtype=int)
-    observed = np.array(seen, dtype=bool)
-    if observed.shape != np.shape(rot)[:2] or observed.shape[1:] != parent.shape:
+    if np.shape(seen) != np.shape(rot)[:2] or np.shape(seen)[1:] != parent.shape:
         raise ValueError(f"need rot (F, S, 3, 3) and seen (F, S) for S = {len(parent)}")
-    for s in _parents_first(parent)[::-1]:  # children first: a segment is observed where anything below it is
-        if parent[s] >= 0:
-            observed[:, parent[s]] |= observed[:, s]
+    observed = observed_below(parent, seen)
     never = ~observed.any(0)
     observed[:, never | (parent < 0)] = True  # left as they are
     return slerp_fill_joints(parent, rot, observed)
+
+
+def observed_below(parent: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(F, S) whether a marker of each segment or of any segment below it is seen, per frame.
+
+    ``parent`` (S,) as :func:`slerp_fill_joints` takes it; ``seen`` (F, S) whether
+    any marker of the segment itself is seen.
+    """
+    parent = np.asarray(parent, dtype=int)
+    observed = np.array(seen, dtype=bool)
+    for s in _parents_first(parent)[::-1]:  # children first
+        if parent[s] >= 0:
+            observed[:, parent[s]] |= observed[:, s]
+    return observed

@@ -28,9 +28,9 @@ from ..artifacts import Motion, Skeleton, markers_of
 from ..errors import DataError
 from ..solvers.calibrate import track
 from ..solvers.ik import segment_poses, solve_ik, unflip
-from ..solvers.rotations import hold_unobserved, slerp_fill_joints
+from ..solvers.rotations import hold_unobserved, observed_below, slerp_fill_joints
 
-VERSION = 6
+VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -145,6 +145,7 @@ def solve(
     sseen = np.zeros((F, len(skel.parent)), dtype=bool)
     np.logical_or.at(sseen.T, skel.marker_segment[skel.marker_segment >= 0], mseen.T)
     rot = hold_unobserved(skel.parent, rot, sseen)
+    out_of_view = (~observed_below(skel.parent, sseen)).sum(0)
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
         solved = np.ones(F, dtype=bool)
@@ -172,6 +173,8 @@ def solve(
         "rms_mm_per_segment": {name: rms(skel.marker_segment == s) for s, name in enumerate(skel.names)},
         "filled_fraction": float(1.0 - count.sum() / resid.size) if resid.size else 0.0,
         "unflip": flips,
+        # frames where nothing of a segment or below it is seen (its joints' angles held there), segments with any
+        "out_of_view_frames": {skel.names[s]: int(n) for s, n in enumerate(out_of_view) if n},
     }
     return Motion(skeleton=skel, root_pos=root_pos, rot=rot, residual=resid, rate=rate, source=source, info=info)
 
