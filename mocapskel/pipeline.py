@@ -399,7 +399,7 @@ def solve(
         },
         "export": bvh.report(),
         "seconds": {k: round(v, 4) for k, v in seconds.items()},
-        "warnings": warnings + list(bvh.notes),
+        "warnings": warnings + [w for w in motion.info.get("warnings", []) if w not in warnings] + list(bvh.notes),
     }
     from . import checks
 

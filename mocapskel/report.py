@@ -89,6 +89,7 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
         "out_of_view_frames": motion.info.get("out_of_view_frames", {}),
         "unflip": motion.info.get("unflip"),
     }
+    warnings.extend(w for w in motion.info.get("warnings", []) if w not in warnings)
     rep["seconds"] = {k: round(float(v), 4) for k, v in run.seconds.items()}
     rep["cached_stages"] = list(run.cached)
     rep["warnings"] = warnings

@@ -32,6 +32,10 @@ from ..solvers.rotations import hold_unobserved, observed_below, slerp_fill_join
 
 VERSION = 7
 
+#: A segment out of view (no marker of it or below it seen) in at least this fraction of the take's frames
+#: is said in a warning: its motion there is made up (its joints keep the angles of the frames around).
+OUT_OF_VIEW_WARN = 0.1
+
 
 @dataclass(frozen=True)
 class Params:
@@ -145,7 +149,8 @@ def solve(
     sseen = np.zeros((F, len(skel.parent)), dtype=bool)
     np.logical_or.at(sseen.T, skel.marker_segment[skel.marker_segment >= 0], mseen.T)
     rot = hold_unobserved(skel.parent, rot, sseen)
-    out_of_view = (~observed_below(skel.parent, sseen)).sum(0)
+    observed = observed_below(skel.parent, sseen)
+    out_of_view = (~observed).sum(0)
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
         solved = np.ones(F, dtype=bool)
@@ -167,6 +172,17 @@ def solve(
         n = int(count[cols].sum())
         return float(np.sqrt(sum2[cols].sum() / n)) if n else None
 
+    warnings = []
+    for sg in np.flatnonzero(out_of_view >= max(1, OUT_OF_VIEW_WARN * F)):
+        gone = np.flatnonzero(~observed[:, sg])
+        brk = np.flatnonzero(np.diff(gone) > 1)
+        runs = [f"{a}-{b}" if b > a else f"{a}" for a, b in zip(np.r_[gone[0], gone[brk + 1]], np.r_[gone[brk], gone[-1]])]
+        labels = [skel.labels[m] for m in np.flatnonzero(skel.marker_segment == sg)]
+        warnings.append(f"segment {skel.names[sg]} ({', '.join(labels[:6])}{' …' if len(labels) > 6 else ''}) is out of view in "
+                        f"{int(out_of_view[sg])} of {F} frames ({100.0 * out_of_view[sg] / F:.0f} %: frames "
+                        f"{', '.join(runs[:4])}{f' and {len(runs) - 4} more stretches' if len(runs) > 4 else ''}): no marker "
+                        "of it or below it is seen there, and it keeps the joint angles of the frames around — its motion "
+                        "there is made up")
     info = {
         "version": VERSION,
         "rms_mm": rms(slice(None)),
@@ -175,6 +191,7 @@ def solve(
         "unflip": flips,
         # frames where nothing of a segment or below it is seen (its joints' angles held there), segments with any
         "out_of_view_frames": {skel.names[s]: int(n) for s, n in enumerate(out_of_view) if n},
+        "warnings": warnings,
     }
     return Motion(skeleton=skel, root_pos=root_pos, rot=rot, residual=resid, rate=rate, source=source, info=info)
 
