@@ -149,7 +149,8 @@ def solve(
     sseen = np.zeros((F, len(skel.parent)), dtype=bool)
     np.logical_or.at(sseen.T, skel.marker_segment[skel.marker_segment >= 0], mseen.T)
     rot = hold_unobserved(skel.parent, rot, sseen)
-    observed = observed_below(skel.parent, sseen)
+    # out of view while something else is seen (frames where nothing is, held below, are not counted)
+    observed = observed_below(skel.parent, sseen) | ~sseen.any(axis=1, keepdims=True)
     out_of_view = (~observed).sum(0)
     empty = [a for a in range(0, F, chunk) if not np.isfinite(points[a : min(F, a + chunk)]).any()]
     if empty:  # whole chunks with nothing seen: hold the nearest solved pose
@@ -189,7 +190,8 @@ def solve(
         "rms_mm_per_segment": {name: rms(skel.marker_segment == s) for s, name in enumerate(skel.names)},
         "filled_fraction": float(1.0 - count.sum() / resid.size) if resid.size else 0.0,
         "unflip": flips,
-        # frames where nothing of a segment or below it is seen (its joints' angles held there), segments with any
+        # frames where nothing of a segment or below it is seen but something else is (its joints' angles held
+        # there), segments with any
         "out_of_view_frames": {skel.names[s]: int(n) for s, n in enumerate(out_of_view) if n},
         "warnings": warnings,
     }
