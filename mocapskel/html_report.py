@@ -534,6 +534,10 @@ def _summary(report: dict, motion: Motion) -> str:
         ("rest frame", _fmt(report.get("rest_frame"))),
         ("IK marker rms", f"{_fmt(ik.get('marker_rms_mm'))} mm"),
         ("filled by the skeleton", f"{100 * filled:.1f} % of marker samples" if filled is not None else "—"),
+        ("out of view", ", ".join(f"{html.escape(str(k))} {int(v)} frames ({100 * int(v) / frames:.0f} %)"
+                                  for k, v in (ik.get("out_of_view_frames") or {}).items()) + " (no marker of the segment or below"
+                        " it seen while others are: its joints keep the angles of the frames around, its motion there is made up)"
+                        if ik.get("out_of_view_frames") and frames else "none"),
         ("parameters", _fmt(", ".join(f"{st}: " + " ".join(f"{k}={v}" for k, v in p.items())
                                       for st, p in params.items() if isinstance(p, dict)) or None)),
         ("time", ", ".join(f"{html.escape(str(k))} {float(v):.2f} s" for k, v in (report.get("seconds") or {}).items()) or "—"),

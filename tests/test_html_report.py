@@ -195,6 +195,16 @@ def test_groups_split_for_rigidity_are_listed_and_escaped(human):
     assert "did not move as one body" not in build_html(res.motion, dict(res.report, segments_split=[]), max_frames=50)
 
 
+def test_segments_out_of_view_are_listed_with_their_share_of_the_take(human):
+    _, res = human
+    frames = res.report["input"]["frames"]
+    ik = dict(res.report["ik"], out_of_view_frames={"<seg05>": frames // 4})
+    text = build_html(res.motion, dict(res.report, ik=ik), max_frames=50)
+    assert f"&lt;seg05&gt; {frames // 4} frames (25 %)" in text and "made up" in text
+    ik = dict(res.report["ik"], out_of_view_frames={})
+    assert "made up" not in build_html(res.motion, dict(res.report, ik=ik), max_frames=50)
+
+
 def test_a_motion_without_its_fit_chain_still_gets_a_page(human):
     """A skeleton read from a .skel file carries no joints, segments or markers: those sections say so."""
     _, res = human
