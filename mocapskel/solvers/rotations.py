@@ -43,6 +43,7 @@ __all__ = [
     "fill_joint",
     "hold_unobserved",
     "observed_below",
+    "segments_seen",
     "project_to_so3",
 ]
 
@@ -586,3 +587,16 @@ def observed_below(parent: np.ndarray, seen: np.ndarray) -> np.ndarray:
         if parent[s] >= 0:
             observed[:, parent[s]] |= observed[:, s]
     return observed
+
+
+def segments_seen(marker_segment: np.ndarray, n_segments: int, points: np.ndarray) -> np.ndarray:
+    """(F, S) whether any marker of each segment is seen (all coordinates finite) in each frame.
+
+    ``marker_segment`` (M,) the segment of each marker (-1: none); ``points`` (F, M', 3). Markers past
+    ``points``' M' (added to a skeleton without data) are never seen.
+    """
+    seen = np.zeros((points.shape[0], int(n_segments)), dtype=bool)
+    seg = np.asarray(marker_segment)[: points.shape[1]]
+    on = np.flatnonzero(seg >= 0)
+    np.logical_or.at(seen.T, seg[on], np.isfinite(points[:, on]).all(-1).T)
+    return seen

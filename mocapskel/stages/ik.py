@@ -25,10 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion, Skeleton, markers_of
+from ..checks import frames_text
 from ..errors import DataError
 from ..solvers.calibrate import track
 from ..solvers.ik import segment_poses, solve_ik, unflip
-from ..solvers.rotations import hold_unobserved, observed_below, slerp_fill_joints
+from ..solvers.rotations import hold_unobserved, observed_below, segments_seen, slerp_fill_joints
 
 VERSION = 7
 
@@ -145,9 +146,7 @@ def solve(
                                              rot, root_pos, resid, max_step_deg=max_step_deg, iterations=iterations,
                                              max_run=max(2, int(round(0.5 * rate))) if rate and rate > 0 else 60)
     # stretches where nothing of a limb is seen: its joints keep their angles (slerped across, held at the ends)
-    mseen = np.isfinite(points).all(-1)[:, skel.marker_segment >= 0]
-    sseen = np.zeros((F, len(skel.parent)), dtype=bool)
-    np.logical_or.at(sseen.T, skel.marker_segment[skel.marker_segment >= 0], mseen.T)
+    sseen = segments_seen(skel.marker_segment, len(skel.parent), points)
     rot = hold_unobserved(skel.parent, rot, sseen)
     # out of view while something else is seen (frames where nothing is, held below, are not counted)
     observed = observed_below(skel.parent, sseen) | ~sseen.any(axis=1, keepdims=True)
@@ -175,13 +174,10 @@ def solve(
 
     warnings = []
     for sg in np.flatnonzero(out_of_view >= max(1, OUT_OF_VIEW_WARN * F)):
-        gone = np.flatnonzero(~observed[:, sg])
-        brk = np.flatnonzero(np.diff(gone) > 1)
-        runs = [f"{a}-{b}" if b > a else f"{a}" for a, b in zip(np.r_[gone[0], gone[brk + 1]], np.r_[gone[brk], gone[-1]])]
         labels = [skel.labels[m] for m in np.flatnonzero(skel.marker_segment == sg)]
         warnings.append(f"segment {skel.names[sg]} ({', '.join(labels[:6])}{' …' if len(labels) > 6 else ''}) is out of view in "
                         f"{int(out_of_view[sg])} of {F} frames ({100.0 * out_of_view[sg] / F:.0f} %: frames "
-                        f"{', '.join(runs[:4])}{f' and {len(runs) - 4} more stretches' if len(runs) > 4 else ''}): no marker "
+                        f"{frames_text(np.flatnonzero(~observed[:, sg]), most=4)}): no marker "
                         "of it or below it is seen there, and it keeps the joint angles of the frames around — its motion "
                         "there is made up")
     info = {

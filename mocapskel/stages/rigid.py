@@ -20,7 +20,7 @@ from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.ik import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
-from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between
+from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between, segments_seen
 
 VERSION = 22
 
@@ -525,11 +525,12 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
         rot, root = skel.pose_rot, skel.pose_root  # a refinement's own poses on these frames
         if hold is None:
             hold = (_hinge_axes(anchor, solve(anchor, pts[use], centres[use]).rot, params.hinge_ratio,
-                                _segments_seen(anchor, pts[use])) if params.hold_hinges else {})
+                                segments_seen(anchor.marker_segment, len(anchor.names), pts[use])) if params.hold_hinges else {})
     else:
         start = solve(skel, pts[use], centres[use])
         rot, root = start.rot, start.root_pos
-        hold = _hinge_axes(skel, start.rot, params.hinge_ratio, _segments_seen(skel, pts[use])) if params.hold_hinges else {}
+        hold = (_hinge_axes(skel, start.rot, params.hinge_ratio,
+                            segments_seen(skel.marker_segment, len(skel.names), pts[use])) if params.hold_hinges else {})
     res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts[use],
                           rot, root, ref_frame=ref,
                           iterations=params.refine_iterations if iterations is None else iterations,
@@ -543,23 +544,14 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos), hold
 
 
-def _segments_seen(skel: Skeleton, pts: np.ndarray) -> np.ndarray:
-    """(F, S) whether any marker of each segment is seen in each frame of ``pts`` (F, M, 3) (markers past
-    ``pts``'s M, added to the skeleton without data, are never seen)."""
-    seen = np.zeros((pts.shape[0], len(skel.names)), dtype=bool)
-    seg = skel.marker_segment[: pts.shape[1]]
-    on = np.flatnonzero(seg >= 0)
-    np.logical_or.at(seen.T, seg[on], np.isfinite(pts[:, on]).all(-1).T)
-    return seen
-
-
 def _relative_rotations(rot: np.ndarray, p: int, c: int, seen: np.ndarray | None = None,
                         least: int = 10) -> np.ndarray | None:
     """``R_p^T R_c`` of poses ``rot`` (F, S, 3, 3) on the frames where both are known, or None when they
     are fewer than ``least`` (too few to tell how a joint turns).
 
-    seen : (F, S) whether each segment has a marker seen in each frame (:func:`_segments_seen`): frames
-    where either has none are left out (IK filled its pose there: a guess, not a measurement).
+    seen : (F, S) whether each segment has a marker seen in each frame
+    (:func:`~mocapskel.solvers.rotations.segments_seen`): frames where either has none are left out (IK
+    filled its pose there: a guess, not a measurement).
     """
     rel = np.swapaxes(rot[:, p], 1, 2) @ rot[:, c]
     ok = np.isfinite(rel).all((1, 2))
@@ -670,7 +662,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     joint turns about, so the poses still fit.
     """
     R = skel.pose_rot
-    vis = None if skel.pose_frames is None else _segments_seen(skel, skel.joints.topology.segments.markers.points[skel.pose_frames])
+    vis = None if skel.pose_frames is None else segments_seen(
+        skel.marker_segment, len(skel.names), skel.joints.topology.segments.markers.points[skel.pose_frames])
     pos = _rest_markers(skel)
     ok_m = np.isfinite(pos).all(1)
     if ok_m.sum() < 3:
@@ -894,7 +887,7 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         seen = float(level) ** 2
     R = skel.pose_rot
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
-    vis = _segments_seen(skel, pts)
+    vis = segments_seen(skel.marker_segment, len(skel.names), pts)
     base = None
     pos = _rest_markers(skel)
     ok_m = np.isfinite(pos).all(1)
