@@ -73,7 +73,7 @@ def test_a_joint_free_along_its_axis_is_held_near_its_markers(seed: int) -> None
             assert max(xy[1], xy[2]) < 92.0, xy
         # along the vertical axes only the refinement's weak prior holds it: within 25 mm of the markers'
         # heights (seeds 0-2: 18-21 mm below the lowest, where the markers fit best; a refinement that
-        # stopped short of that, 0.4-1.3 % worse in marker rms, left it 17-19 mm below)
+        # stopped short of that, 0.4-1.4 % worse in marker rms, left it 17-19 mm below)
         assert np.nanmin(z) - 25 <= np.nanmedian(pos[:, s, 2]) <= np.nanmax(z) + 25
 
 def test_a_hinge_joint_far_down_its_axis_comes_back_to_the_markers() -> None:

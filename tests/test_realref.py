@@ -289,20 +289,21 @@ def _fit_report(rel: str, tmp_path: Path, what: str) -> dict:
 
 @pytest.mark.parametrize("rel,what,how", [
     # the right foot split in two (rigid plates on the shank: the foot's own flexion of 1.4-2.5 mm is above
-    # the take's tolerance), a rear-foot bone of 472 mm where the left foot's is 153: legs of 3 and 4
-    # segments, 1086 and 1613 mm from the trunk (48 % apart: said by their numbers of segments)
-    ("addbiomechanics/stairdown_markers.trc", "legs", "have 3 and 4 segments"),
+    # the take's tolerance), a rear-foot bone of 472-493 mm where the left foot's is 153: legs of 3 and 4
+    # segments, 48-52 % apart in length (said by their lengths above half apart, else by their numbers of
+    # segments: where the held refinement leaves the rear foot's joint decides which)
+    ("addbiomechanics/stairdown_markers.trc", "legs", ("mm long from the trunk", "have 3 and 4 segments")),
     # a short walk whose left elbow hardly bends: upper arm and forearm one segment on that side
     ("cmu/07_12.c3d", "arms", "have 2 and 1 segments"),
 ])
-def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: str, tmp_path: Path) -> None:
+def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: str | tuple[str, ...], tmp_path: Path) -> None:
     """A tree that is a person's but for its two legs (or arms) of unequal length or of unequal numbers of
     segments is not named as a person, and was written with no warning: a skeleton no person has. Said now
     (``limb_asymmetry``), naming the two limbs."""
     report = _fit_report(rel, tmp_path, "the unlike-limbs test")
     assert "not recognised as a person" in report["export"]["names"]["note"]
     found = [c for c in report["checks"] if c["check"] == "limb_asymmetry" and f"the two {what}" in c["message"]]
-    assert len(found) == 1 and how in found[0]["message"], report["checks"]
+    assert len(found) == 1 and any(h in found[0]["message"] for h in ((how,) if isinstance(how, str) else how)), report["checks"]
     if what == "legs":  # the split foot made one leg a segment longer, and its bones longer than the other's
         kids = {}
         for b in report["bones"]:

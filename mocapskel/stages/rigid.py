@@ -465,15 +465,15 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
     if bad and params.joint_prior > 0:
         # from the free fit (most of the skeleton is where it belongs), the prior holding the bad
         # joints where the joints stage put them; they start there
-        held, _ = _refine_once(held_start(out, skel, bad), params, centres, params.joint_prior, set(bad), anchor=skel,
-                               hold=hold)
+        held, _ = _refine_once(held_start(out, skel, bad, params, centres, hold), params, centres, params.joint_prior,
+                               set(bad), anchor=skel, hold=hold)
         more = sorted(set(off_the_body(held, params.far, params.outside)) - set(bad))
         if more:
             # holding them pushed another joint off the body (two joints with no markers between them: the
             # one held, the other slid to make up for it): it is held too
             bad = sorted(set(bad) | set(more))
-            held, _ = _refine_once(held_start(out, skel, bad), params, centres, params.joint_prior, set(bad),
-                                   anchor=skel, hold=hold)
+            held, _ = _refine_once(held_start(out, skel, bad, params, centres, hold), params, centres,
+                                   params.joint_prior, set(bad), anchor=skel, hold=hold)
         free_rms, held_rms = out.info["refined"]["marker_rms_mm_after"], held.info["refined"]["marker_rms_mm_after"]
         # held, the markers fit about as well: the joints slid along what the markers do not fix.
         # A clearly worse fit: the markers needed the move (a rough start put right), so it stays.
@@ -489,18 +489,21 @@ def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, pa
     return out
 
 
-def held_start(out: Skeleton, anchor: Skeleton, joints: list[int]) -> Skeleton:
-    """The start of a held refinement: ``out`` (the free one) with the joints of ``joints`` (child
-    segments) put back where ``anchor`` has them relative to the markers of their two segments (the
-    mean of the two places), each segment keeping its markers where they are.
+def held_start(out: Skeleton, anchor: Skeleton, joints: list[int], params: Params | None = None,
+               centres: np.ndarray | None = None, hold: dict[int, np.ndarray] | None = None) -> Skeleton:
+    """The start of a held refinement: ``out`` (the free one), or ``out`` with the joints of ``joints``
+    (child segments) put back where ``anchor`` has them relative to the markers of their two segments
+    (the mean of the two places), each segment keeping its markers, and the poses of its frames solved
+    again; of the two, the one with the lower cost of the held fit (markers and prior together; with
+    ``params`` None, the second without comparing).
 
     The prior of the held refinement pulls those joints to just that place (see
     :func:`~mocapskel.solvers.calibrate.refine_skeleton`), and a joint slid along a direction the
     markers hardly fix costs the markers little to move back: started there, the fit has little left to
     do. Started where the free fit left them, Levenberg-Marquardt crept back along that nearly flat
     direction for most of its iterations (a real full-body take of 17 segments: 54 iterations, 2 s,
-    against 12; every real take held so ended with a marker rms within 0.001 mm of before, or lower).
-    The poses of ``out`` are kept: the move leaves every marker where it was."""
+    against 10). Where the markers do see the move (joints that did not slide along a free direction
+    but went where the markers put them), the free fit is the better start."""
     seg = out.marker_segment
     pos_o, pos_a = _rest_markers(out), _rest_markers(anchor)
     origin, local = out.origin.copy(), out.marker_local.copy()
@@ -514,7 +517,17 @@ def held_start(out: Skeleton, anchor: Skeleton, joints: list[int]) -> Skeleton:
                 targets.append(pos_o[m].mean(0) + (anchor.origin[c] - pos_a[m].mean(0)))
         if targets:
             origin, local = _move_joint(origin, local, seg, int(c), np.mean(targets, axis=0) - origin[c])
-    return replace(out, origin=origin, marker_local=local)
+    if out.pose_rot is None or out.pose_frames is None:
+        return replace(out, origin=origin, marker_local=local)
+    # the move keeps every marker in place at rest only: a bent joint's markers move in the other frames
+    pts = out.joints.topology.segments.markers.points[out.pose_frames]
+    res = solve_ik(out.parent, origin, seg, local, pts, init_rot=out.pose_rot, init_root=out.pose_root, prior_weight=0.0)
+    moved = replace(out, origin=origin, marker_local=local, pose_rot=res.rot, pose_root=res.root_pos)
+    if params is None:
+        return moved
+    cost = [_refine_once(st, params, centres, params.joint_prior, set(joints), anchor=anchor, iterations=0,
+                         hold=hold)[0].info["refined"]["marker_rms_mm_before"] for st in (out, moved)]
+    return moved if cost[1] <= cost[0] else out
 
 
 def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prior: float,
