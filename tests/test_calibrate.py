@@ -539,6 +539,41 @@ def test_a_held_refinement_starts_with_its_joints_where_the_prior_holds_them():
     assert rn["iterations"] < ro["iterations"], (rn["iterations"], ro["iterations"])
 
 
+def test_a_held_fit_from_the_joints_put_back_falls_back_to_the_free_start(monkeypatch):
+    """From the joints put back the held fit is taken as it is when it converges and would be kept; when
+    it stops at its iteration limit or would not be kept (its marker rms just over the tolerance against
+    the free fit), the fit from the free one is made too, and of the two those that would be kept, the
+    lower held cost (fits from the two starts end a few hundredths of a millimetre apart, and the test
+    against the free fit can fall between them)."""
+    from types import SimpleNamespace
+
+    params = rigid.Params()
+    out, moved = SimpleNamespace(name="free"), SimpleNamespace(name="moved")
+    limit = params.refine_iterations
+
+    def fit(name, iterations):
+        return SimpleNamespace(name=name, info={"refined": {"iterations": iterations}})
+
+    def run(results, keep, cost):
+        started = []
+        monkeypatch.setattr(rigid, "held_start", lambda o, *a, **k: moved)
+        monkeypatch.setattr(rigid, "_refine_once", lambda st, *a, **k: (started.append(st.name) or results[st.name], None))
+        monkeypatch.setattr(rigid, "_held_cost", lambda h, *a, **k: cost[h.name])
+        got = rigid._held_fit(out, None, [1], params, None, None, lambda h: h.name in keep)
+        return got.name, started
+
+    a, b = fit("from moved", 10), fit("from free", 30)
+    results = {"moved": a, "free": b}
+    cost = {"from moved": 1.0, "from free": 2.0}
+    assert run(results, {"from moved", "from free"}, cost) == ("from moved", ["moved"])  # converged, kept
+    assert run(results, {"from free"}, cost) == ("from free", ["moved", "free"])  # not kept: the free start's
+    a.info["refined"]["iterations"] = limit  # at the iteration limit: both, the lower cost of those kept
+    assert run(results, {"from moved", "from free"}, cost) == ("from moved", ["moved", "free"])
+    cost["from moved"] = 3.0
+    assert run(results, {"from moved", "from free"}, cost) == ("from free", ["moved", "free"])
+    assert run(results, set(), cost) == ("from free", ["moved", "free"])  # neither kept: the lower cost (refine keeps the free fit)
+
+
 def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
     """Holding the joints that slid must not cost others their place: on a real functional trial (biobuddy
     right_hip) the held refinement, within 4 % of the free fit's marker rms, slid three other joints 2 m
@@ -571,6 +606,7 @@ def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
 
     calls = iter([(free, {}), (held, {}), (held, {})])  # held again with the joint it pushed off: still off
     monkeypatch.setattr(rigid, "_refine_once", refine_once)
+    monkeypatch.setattr(rigid, "held_start", lambda out, *a, **k: out)  # each held fit from the free one, once
     monkeypatch.setattr(rigid, "slid_joints", lambda before, after, slide: [first])
     out = rigid.refine(skel, params)
     assert out is free and "held_because" not in out.info["refined"]
