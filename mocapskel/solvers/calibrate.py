@@ -553,7 +553,8 @@ def refine_skeleton(
 
     p0, R0, d0, l0 = p, R, d, l
     try:
-        p, R, d, l, cost, it = iterate(None)
+        # no iteration (the cost at the start only): no worker processes to fork
+        p, R, d, l, cost, it = iterate(None) if iterations > 0 else (p, R, d, l, c0, 0)
     except WorkerLost:
         # a lost worker process (killed, out of memory): the whole fit again in this process alone,
         # which gives the same result

@@ -552,7 +552,7 @@ def held_start(out: Skeleton, anchor: Skeleton, joints: list[int], params: Param
         return replace(out, origin=origin, marker_local=local)
     # the move keeps every marker in place at rest only: a bent joint's markers move in the other frames
     pts = out.joints.topology.segments.markers.points[out.pose_frames]
-    res = solve_ik(out.parent, origin, seg, local, pts, init_rot=out.pose_rot, init_root=out.pose_root, prior_weight=0.0)
+    res = _repose(out, origin, local, pts)
     moved = replace(out, origin=origin, marker_local=local, pose_rot=res.rot, pose_root=res.root_pos)
     if params is None:
         return moved
@@ -1046,11 +1046,17 @@ def _move_joint(origin: np.ndarray, local: np.ndarray, seg: np.ndarray, c: int, 
     return o2, l2
 
 
+def _repose(skel: Skeleton, origin: np.ndarray, local: np.ndarray, pts: np.ndarray):
+    """IK of a skeleton with rest offsets ``origin``, ``local`` on ``pts`` (F, M, 3), the refinement's
+    frames, from the refinement's poses, with no prior."""
+    return solve_ik(skel.parent, origin, skel.marker_segment, local, pts, init_rot=skel.pose_rot,
+                    init_root=skel.pose_root, prior_weight=0.0)
+
+
 def _pose_ms(skel: Skeleton, origin: np.ndarray, local: np.ndarray, pts: np.ndarray) -> float:
     """Mean squared marker residual (mm^2) of a skeleton with rest offsets ``origin``, ``local`` on
-    ``pts`` (F, M, 3), the refinement's frames: IK from the refinement's poses, with no prior."""
-    res = solve_ik(skel.parent, origin, skel.marker_segment, local, pts, init_rot=skel.pose_rot,
-                   init_root=skel.pose_root, prior_weight=0.0)
+    ``pts`` (F, M, 3), the refinement's frames: :func:`_repose`."""
+    res = _repose(skel, origin, local, pts)
     r = res.residual[np.isfinite(res.residual)]
     return float(np.mean(r * r)) if r.size else np.inf
 
