@@ -29,6 +29,12 @@ from .errors import InputError
 
 SCHEMA = 1
 
+#: Frame rates mocapskel accepts (Hz). Optical capture runs at tens to a few thousand
+#: frames per second; a rate outside this range is a damaged or mislabelled header, and
+#: the stages size their windows (half a second ...) by it.
+MIN_RATE_HZ = 1.0
+MAX_RATE_HZ = 100_000.0
+
 
 @dataclass(frozen=True, eq=False)
 class Markers:
@@ -475,8 +481,6 @@ def validate(obj: Any) -> None:
 
     Raises ``ValueError`` (an internal subclass) naming the first field that is wrong.
     """
-    from .io.markers import MAX_RATE_HZ, MIN_RATE_HZ
-
     def rate_ok(o: Any) -> None:
         r = _scalar(o, "rate", (int, float, np.integer, np.floating))
         _need(MIN_RATE_HZ <= float(r) <= MAX_RATE_HZ, f"{o.kind}.rate {float(r):g} Hz is not a capture rate")

@@ -146,7 +146,7 @@ def test_cut_long_c3d_ending_inside_its_last_frame_is_refused(tmp_path: Path, sa
         ezc3d_file(f, xyz, ["A", "B"], rate=200.0)
     else:
         write_markers(f, Markers(points=xyz, labels=("A", "B"), rate=200.0))
-    from mocapskel.io.c3d import read_layout
+    from mocapskel.io.c3d_layout import read_layout
 
     lay = read_layout(f)
     assert lay.declared_frames()[2] is saturated

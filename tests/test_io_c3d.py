@@ -14,7 +14,9 @@ import pytest
 
 from mocapskel.artifacts import Markers
 from mocapskel.errors import InputError
-from mocapskel.io.c3d import read_c3d, read_layout, write_c3d
+from mocapskel.io.c3d import read_c3d
+from mocapskel.io.c3d_layout import read_layout
+from mocapskel.io.c3d_write import write_c3d
 from mocapskel.io.markers import read_markers, write_markers
 
 # --------------------------------------------------------------------------- helpers

@@ -195,7 +195,7 @@ def test_markers_out_trc_reads_in_opensim(lab, tmp_path: Path) -> None:
 
 def test_added_points_continue_labels2_beyond_255_points(tmp_path: Path) -> None:
     from mocapskel.artifacts import Markers
-    from mocapskel.io.c3d import write_c3d
+    from mocapskel.io.c3d_write import write_c3d
     from mocapskel.io.c3d_points import add_points
     from mocapskel.io.markers import read_markers
 

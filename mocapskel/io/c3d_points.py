@@ -17,8 +17,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import InputError
-from .c3d import write_ezc3d
-from .markers import unit_factor
+from .c3d_write import write_ezc3d
+from .raw import unit_factor
 
 __all__ = ["FrameCountMismatch", "add_points"]
 

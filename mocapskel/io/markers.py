@@ -14,25 +14,20 @@ import os
 import re
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..artifacts import Markers
 from ..errors import InputError, UsageError
+from .raw import RawTake, check_rate
 
 __all__ = [
     "COMPUTED_POINT_PATTERNS",
     "COMPUTED_DESCRIPTION_PATTERNS",
-    "RawTake",
-    "UNIT_TO_MM",
-    "MAX_RATE_HZ",
-    "MIN_RATE_HZ",
-    "check_rate",
     "computed_reason",
     "read_markers",
-    "unit_factor",
     "write_markers",
 ]
 
@@ -40,36 +35,6 @@ __all__ = [
 #: Coordinates beyond this (mm, 10 km) cannot come from a capture volume: the take is refused.
 MAX_COORDINATE_MM = 1e7
 log = logging.getLogger(__name__)
-
-#: Frame rates mocapskel accepts (Hz). Optical capture runs at tens to a few thousand
-#: frames per second; a rate outside this range is a damaged or mislabelled header, and
-#: the stages size their windows (half a second ...) by it.
-MIN_RATE_HZ = 1.0
-MAX_RATE_HZ = 100_000.0
-
-
-def check_rate(rate: object, path: str, what: str = "frame rate", fix: str = "export the take again") -> float:
-    """``rate`` as a float when it is a number from :data:`MIN_RATE_HZ` to :data:`MAX_RATE_HZ`; else InputError.
-
-    Parameters
-    ----------
-    rate : object
-        The rate as read (any type: a damaged file may hold text, NaN, inf ...).
-    path : str
-        The file, for the message.
-    what : str
-        Where the rate comes from (``"POINT:RATE"``, ``"DataRate"`` ...).
-    fix : str
-        What the user should do.
-    """
-    ok = isinstance(rate, (int, float, np.integer, np.floating)) and not isinstance(rate, (bool, np.bool_))
-    r = float(rate) if ok else float("nan")
-    if not (MIN_RATE_HZ <= r <= MAX_RATE_HZ):  # NaN fails too
-        shown = f"{r:g} Hz" if ok else repr(rate)[:40]
-        raise InputError(
-            f"{what} {shown} is not a capture rate (from {MIN_RATE_HZ:g} Hz to {MAX_RATE_HZ:g} Hz) — {fix}", path
-        )
-    return r
 
 #: Labels of points that are computed by the capture software rather than seen
 #: by the cameras, as ``(regular expression, reason)``. A label (without its
@@ -108,70 +73,9 @@ COMPUTED_DESCRIPTION_PATTERNS: tuple[tuple[str, str], ...] = (
     (r"(?i)\bvirtual\b", "virtual point (description says so)"),
 )
 
-#: Millimetres per unit, keyed by the normalised unit name.
-UNIT_TO_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "dm": 100.0, "m": 1000.0, "in": 25.4}
-
-_UNIT_ALIASES: dict[str, str] = {
-    "mm": "mm", "millimeter": "mm", "millimeters": "mm", "millimetre": "mm", "millimetres": "mm",
-    "cm": "cm", "centimeter": "cm", "centimeters": "cm", "centimetre": "cm", "centimetres": "cm",
-    "dm": "dm", "decimeter": "dm", "decimeters": "dm", "decimetre": "dm", "decimetres": "dm",
-    "m": "m", "meter": "m", "meters": "m", "metre": "m", "metres": "m",
-    "in": "in", "inch": "in", "inches": "in",
-}
-
-
-def unit_factor(units: str) -> tuple[str, float | None]:
-    """Normalise a length unit name and give its size in millimetres.
-
-    Parameters
-    ----------
-    units : str
-        Unit as written in a file (``"mm"``, ``" MM"``, ``"meters"`` ...).
-
-    Returns
-    -------
-    name : str
-        ``"mm"``, ``"cm"``, ``"dm"``, ``"m"`` or ``"in"``; the stripped input
-        when it is not a known length unit.
-    factor : float or None
-        Millimetres per unit, None when the unit is unknown or empty.
-    """
-    key = units.strip().strip(".").lower()
-    name = _UNIT_ALIASES.get(key)
-    if name is None:
-        return units.strip(), None
-    return name, UNIT_TO_MM[name]
-
-
 _LABEL_RES = tuple((re.compile(p), why) for p, why in COMPUTED_POINT_PATTERNS)
 _DESC_RES = tuple((re.compile(p), why) for p, why in COMPUTED_DESCRIPTION_PATTERNS)
 _READERS = (".c3d", ".trc")
-
-
-@dataclass
-class RawTake:
-    """What a format reader hands to :func:`read_markers`.
-
-    points       : (F, M, 3) float64 ndarray, mm, NaN (or another non-finite
-                   value) where the marker is not seen; owned by the take.
-    labels       : M labels as written in the file (may be empty, repeated,
-                   padded or carry a ``Subject:`` prefix).
-    rate         : frames per second.
-    units        : the file's units, normalised (``"mm"``, ``"m"`` ...).
-    descriptions : M point descriptions, or None.
-    computed     : labels the file itself declares as computed, with a reason.
-    warnings     : what looked wrong in the file and how it was resolved.
-    info         : format-specific notes (JSON-able).
-    """
-
-    points: np.ndarray
-    labels: list[str]
-    rate: float
-    units: str
-    descriptions: list[str] | None = None
-    computed: dict[str, str] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    info: dict = field(default_factory=dict)
 
 
 def computed_reason(label: str, description: str = "") -> str | None:
@@ -485,7 +389,7 @@ def write_markers(path: str | os.PathLike, markers: Markers) -> None:
     if p.is_dir():
         raise UsageError("is a folder — give a file name ending in .c3d or .trc", str(path))
     if ext == ".c3d":
-        from .c3d import write_c3d
+        from .c3d_write import write_c3d
 
         write_c3d(p, markers)
     else:

@@ -38,7 +38,7 @@ import numpy as np
 from ..artifacts import Markers
 from ..errors import InputError
 from .atomic import atomic_open
-from .markers import RawTake, check_rate, unit_factor
+from .raw import RawTake, check_rate, unit_factor
 
 __all__ = ["read_trc", "write_trc"]
 
