@@ -18,8 +18,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mocapskel import batch
-from mocapskel.batch import SUMMARY_COLUMNS, choose_clusters, read_summary, take_names
+from mocapskel.batch import local_runner, worker
+from mocapskel.batch.clustering import choose_clusters
+from mocapskel.batch.inputs import collect_inputs, take_names
+from mocapskel.batch.proportions import proportion_distance
+from mocapskel.batch.summary import SUMMARY_COLUMNS, read_summary
 from mocapskel.cli.main import cli
 from mocapskel.io.bvh import read_bvh
 from mocapskel.io.markers import write_markers
@@ -131,7 +134,7 @@ def test_rerun_skips_finished_takes_unless_options_change_or_force(small, tmp_pa
 
 def test_interrupted_batch_leaves_no_partial_output(small, tmp_path, monkeypatch):
     takes, _, _, _ = small
-    real = batch.fit_take
+    real = worker.fit_take
     calls = []
 
     def fit_then_interrupt(task):
@@ -140,7 +143,7 @@ def test_interrupted_batch_leaves_no_partial_output(small, tmp_path, monkeypatch
             raise KeyboardInterrupt
         return real(task)
 
-    monkeypatch.setattr(batch, "fit_take", fit_then_interrupt)
+    monkeypatch.setattr(local_runner, "fit_take", fit_then_interrupt)
     out = tmp_path / "out"
     code, _, err = run("batch", takes, "-o", out, "--jobs", 1, "--no-cache")
     assert code == 130 and "interrupted" in err
@@ -192,8 +195,8 @@ def test_a_signal_that_python_wrapped_in_another_error_stops_the_batch(small, tm
 
 def test_inputs_files_folders_globs(small, tmp_path):
     takes, _, _, _ = small
-    assert [p.name for p in batch.collect_inputs([takes])] == ["chain.trc", "link_a.trc", "link_b.c3d", "x.c3d"]
-    assert [p.name for p in batch.collect_inputs([str(takes / "*.trc"), takes / "chain.trc"])] == ["chain.trc", "link_a.trc"]
+    assert [p.name for p in collect_inputs([takes])] == ["chain.trc", "link_a.trc", "link_b.c3d", "x.c3d"]
+    assert [p.name for p in collect_inputs([str(takes / "*.trc"), takes / "chain.trc"])] == ["chain.trc", "link_a.trc"]
     assert take_names([Path("a/run.c3d"), Path("b/run.trc"), Path("c/RUN.c3d"), Path("walk.c3d")]) == [
         "run_c3d", "run_trc", "RUN_c3d_2", "walk"]
     code, _, err = run("batch", tmp_path / "missing.c3d", "-o", tmp_path / "out")
@@ -381,11 +384,11 @@ def test_choose_clusters_cuts_at_the_widest_gap():
 
 def test_proportion_distance_ignores_size_and_one_bad_bone():
     L = np.array([300.0, 250.0, 440.0, 420.0, 180.0, 300.0])
-    d, r, worst = batch.proportion_distance(L, 1.05 * L)
+    d, r, worst = proportion_distance(L, 1.05 * L)
     assert d == pytest.approx(0.0, abs=1e-9) and worst >= 0
     bad = L.copy()
     bad[3] *= 0.9
-    d, r, worst = batch.proportion_distance(L, bad)
+    d, r, worst = proportion_distance(L, bad)
     assert worst == 3 and d == pytest.approx(0.0, abs=1e-9) and r[3] == pytest.approx(-0.1 / 0.95)
-    d_all, _, _ = batch.proportion_distance(L, bad, trim=False)
+    d_all, _, _ = proportion_distance(L, bad, trim=False)
     assert d_all > 2.0
