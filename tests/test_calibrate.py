@@ -407,10 +407,11 @@ def test_distance_penalty_shared_per_segment_puts_gait_hips_nearer_the_truth(mon
     penalty, per marker, pulls it into the pelvis; shared half and half between the two segments, the
     pelvis's half on its marker nearest the thigh, it sits nearer the truth, hip by hip, on three seeds."""
     import mocapskel.solvers.jmv as jmv_mod
+    import mocapskel.solvers.joint_cost as joint_cost_mod
     import mocapskel.solvers.mtb as mtb_mod
     from mocapskel.synth.presets import realistic
 
-    shared, edge = jmv_mod.balanced_alpha, jmv_mod.edge_alpha
+    shared, edge = joint_cost_mod.balanced_alpha, jmv_mod.edge_alpha
     per_marker = lambda alpha, n_a, n_b: float(alpha)  # noqa: E731
     for seed in (1, 2, 3):
         take = make(realistic(seed=seed, frames=600, motion="walk", markerset="gait"))

@@ -127,7 +127,7 @@ def test_topology_of_a_long_take_reads_each_frame_once(linkage):
     seen = np.stack([np.isfinite(pts[:, seg.members(s)]).all(-1).sum(1) for s in range(seg.n_segments)], axis=1)
     a, b = topo.edges[0]
     fr = topology.pair_frames(seen[:, a], seen[:, b], frames, topology.Params().n_frames)
-    from mocapskel.solvers.jmv import pair_cost
+    from mocapskel.solvers.pair_cost import pair_cost
 
     assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topo.info["alpha"])
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers.jmv import JointFit, balanced_alpha, jmv_joint, joint_cost
+from mocapskel.solvers.jmv import jmv_joint
+from mocapskel.solvers.joint_cost import JointFit, balanced_alpha, joint_cost
 from mocapskel.solvers.mtb import Basis, mtb_basis, mtb_joint
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
@@ -178,7 +179,7 @@ def test_long_take_basis_is_rigid_and_joint_exact():
 
 def test_unmasked_fast_paths_equal_the_masked_computation():
     """Every point seen: the unmasked sums give what the masked ones give (a never-seen point added)."""
-    from mocapskel.solvers import jmv, mtb
+    from mocapskel.solvers import joint_cost as jcost, mtb
 
     rng = np.random.default_rng(12)
     F = 400
@@ -193,8 +194,8 @@ def test_unmasked_fast_paths_equal_the_masked_computation():
     for x, y in zip(fast, masked):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
     c = o + rng.normal(0, 10, (F, 3))
-    q, d, diff, n, dbar, used = jmv._cost_terms(c, pts, valid, 3.0)
-    qm, dm, diffm, nm, dbarm, usedm = jmv._cost_terms(c, ghost, gvalid, 3.0)
+    q, d, diff, n, dbar, used = jcost._cost_terms(c, pts, valid, 3.0)
+    qm, dm, diffm, nm, dbarm, usedm = jcost._cost_terms(c, ghost, gvalid, 3.0)
     assert q == pytest.approx(qm, rel=1e-12)
     np.testing.assert_allclose(d, dm[:, :5], rtol=1e-14)
     np.testing.assert_allclose(dbar, dbarm[:5], rtol=1e-14)

@@ -35,7 +35,8 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _seen, jmv_joint, jmv_joint_long, joint_cost
+from .jmv import jmv_joint, jmv_joint_long
+from .joint_cost import JointFit, _seen, joint_cost
 from .mtb import COLLINEAR_TOL, Basis, mtb_basis, mtb_joint
 
 __all__ = ["TreeJoints", "solve_tree"]

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import JointFit, _alpha_const, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack, balanced_alpha
+from .joint_cost import JointFit, _alpha_const, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack, balanced_alpha
 
 __all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
 
@@ -410,3 +410,16 @@ def mtb_joint(
     if not converged:
         return JointFit(centre, q, it, False, "iteration limit reached before convergence", lam, radii)
     return JointFit(centre, q, it, True, "", lam, radii)
+
+
+def _mtb_init(a: np.ndarray, b: np.ndarray, alpha: float) -> np.ndarray | None:
+    """MTB joint from the side whose fit has the lower Q; None when no side has a basis."""
+    best: JointFit | None = None
+    for side, name in ((a, "a"), (b, "b")):
+        if side.shape[1] >= 3:
+            basis = mtb_basis(side)
+            if basis:
+                fit = mtb_joint(basis.points, a, b, alpha=alpha, basis_side=name)
+                if fit and (best is None or fit.cost < best.cost):
+                    best = fit
+    return None if best is None else best.centre

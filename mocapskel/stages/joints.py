@@ -37,7 +37,8 @@ from ..checks import marker_extent
 from ..errors import DataError
 from ..parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
-from ..solvers.jmv import distance_penalty, jmv_joint_long, joint_cost
+from ..solvers.jmv import jmv_joint_long
+from ..solvers.joint_cost import distance_penalty, joint_cost
 from ..solvers.rigid import shape_poses
 from ..solvers.score import group_pose, score
 from ..solvers.sphere import mgdk
@@ -62,7 +63,7 @@ class Params:
     method: str = "auto"
     alpha: float | None = None
     """Kirk's distance penalty in the final fit; None: scaled to the take (``alpha_k`` skin
-    variances per median marker distance, see :func:`~mocapskel.solvers.jmv.distance_penalty`).
+    variances per median marker distance, see :func:`~mocapskel.solvers.joint_cost.distance_penalty`).
     Kirk drops it in the final pass but notes it helps where the motion does not exercise
     every degree of freedom — on real takes, most joints: a hinge's centre, or a joint
     between two-marker segments, otherwise slides off along what the markers do not fix."""

@@ -26,8 +26,9 @@ from ..artifacts import Segments, Topology
 from ..checks import marker_extent
 from ..errors import DataError
 from ..parallel import n_threads, run_forked
-from ..solvers.jmv import balanced_alpha, distance_penalty, pair_cost
+from ..solvers.joint_cost import balanced_alpha, distance_penalty
 from ..solvers.mtb import mtb_basis
+from ..solvers.pair_cost import pair_cost
 from ..solvers.partition import rigid_rms
 
 VERSION = 12
