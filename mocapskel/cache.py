@@ -1,8 +1,12 @@
 """The artifact cache: skip stages whose inputs and parameters have not changed.
 
-Key = SHA-256 of a canonical JSON record {stage, stage VERSION, params,
-upstream key, cache format}; the first key is the hash of the input file's
-bytes (and the reader's options). Entries are ``<key>.npz`` files written
+Key = SHA-256 of a canonical JSON record {stage, stage VERSION, the digest
+of the stage's code, params, upstream key, cache format}; the first key is the
+hash of the input file's bytes (and the reader's options). The code digest
+covers the stage's module and every module of the package it imports, directly
+or through others (function-level imports included): a change to a solver that
+two stages call changes both stages' keys, so an entry never outlives the code
+that made it. Entries are ``<key>.npz`` files written
 atomically; an entry holds its upstream artifact by reference (that artifact's
 key), so the markers of a take are stored once, not once per stage.
 
@@ -17,10 +21,12 @@ by recursion, and a chain that comes back to an entry already seen is damage.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -54,11 +60,92 @@ CACHE_FORMAT = 2
 _MAX_CHAIN = 32
 
 
-def stage_key(stage: str, version: int, params: Any, upstream: str) -> str:
+def stage_key(stage: str, version: int, params: Any, upstream: str, code: str = "") -> str:
+    """The key of a stage's entry. ``code``: :func:`code_digest` of the stage's module ("" for keys that
+    name no code: the read and subject keys)."""
     p = dataclasses.asdict(params) if dataclasses.is_dataclass(params) else params
-    rec = json.dumps({"stage": stage, "version": version, "params": p, "upstream": upstream, "cache": CACHE_FORMAT},
-                     sort_keys=True, default=str)
-    return hashlib.sha256(rec.encode()).hexdigest()
+    rec = {"stage": stage, "version": version, "params": p, "upstream": upstream, "cache": CACHE_FORMAT}
+    if code:
+        rec["code"] = code
+    return hashlib.sha256(json.dumps(rec, sort_keys=True, default=str).encode()).hexdigest()
+
+
+#: The folder of the package's modules (this module's own folder).
+_PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def _module_file(name: str) -> Path | None:
+    """The source file of the package module ``name`` (``mocapskel.x.y`` -> x/y.py or x/y/__init__.py)."""
+    parts = name.split(".")[1:]
+    base = _PACKAGE_DIR.joinpath(*parts)
+    for f in (base / "__init__.py", base.with_suffix(".py") if parts else None):
+        if f is not None and f.is_file():
+            return f
+    return None
+
+
+def module_source(name: str) -> bytes | None:
+    """The source of the package module ``name`` (``None`` when it has no source file)."""
+    f = _module_file(name)
+    return f.read_bytes() if f is not None else None
+
+
+#: ``from X import names`` (names in parentheses may span lines) and ``import X, Y``, at any indentation
+#: (function-level imports too). Read from the text rather than parsed: faster, and a match inside a docstring
+#: only adds a module to the digest.
+_FROM = re.compile(rb"^[ \t]*from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)", re.M)
+_IMPORT = re.compile(rb"^[ \t]*import[ \t]+([^\n#;]*)", re.M)
+
+
+@functools.lru_cache(maxsize=None)
+def _imported(name: str, source: bytes, package: str) -> frozenset[str]:
+    """The modules of ``package`` that the module ``name`` imports, wherever in it (function-level too)."""
+    f = _module_file(name)
+    here = name if f is not None and f.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+    for m in _IMPORT.finditer(source):
+        out.update(w.split()[0] for w in m.group(1).decode().split(",") if w.strip())
+    for m in _FROM.finditer(source):
+        mod = m.group(1).decode()
+        level = len(mod) - len(mod.lstrip("."))
+        if level:
+            base = here.split(".")[: len(here.split(".")) - level + 1]
+            target = ".".join(base + ([mod[level:]] if mod[level:] else []))
+        else:
+            target = mod
+        out.add(target)
+        for w in m.group(2).decode().strip("()").replace("\n", " ").split(","):
+            if w.strip():
+                out.add(f"{target}.{w.split()[0]}")  # ``from . import x``: x may be a module
+    return frozenset(m for m in out if (m == package or m.startswith(package + ".")) and _module_file(m) is not None)
+
+
+def code_modules(name: str) -> list[str]:
+    """Module ``name`` and every module of its package it imports, directly or through others (sorted)."""
+    package = name.partition(".")[0]
+    seen: set[str] = set()
+    todo = [name]
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        src = module_source(m)
+        if src is not None:
+            todo.extend(_imported(m, src, package) - seen)
+    return sorted(seen)
+
+
+@functools.lru_cache(maxsize=None)
+def code_digest(name: str) -> str:
+    """SHA-256 over the source of module ``name`` and of every module of its package it imports, directly or
+    through others (:func:`code_modules`): what shapes a stage's output besides its parameters and input."""
+    h = hashlib.sha256()
+    for m in code_modules(name):
+        src = module_source(m) or b""
+        h.update(f"{m}\0{len(src)}\0".encode())
+        h.update(src)
+    return h.hexdigest()
 
 
 def digest(arrays: dict[str, np.ndarray]) -> str:

@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from . import artifacts
 from .artifacts import Markers
-from .cache import Cache, file_key, stage_key
+from .cache import Cache, code_digest, file_key, stage_key
 from .errors import DataError, InputError, UsageError
 from .parallel import one_blas_thread
 
@@ -140,7 +140,7 @@ def run_until(
     for stage in STAGES[_index(have) + 1 : _index(target) + 1]:
         mod = stage_module(stage)
         p = params.get(stage) or mod.Params()
-        k = stage_key(stage, mod.VERSION, p, run.key)
+        k = stage_key(stage, mod.VERSION, p, run.key, code_digest(mod.__name__))
         t = time.perf_counter()
         # the upstream artifact is the one in hand: an entry's reference is checked against its key, never followed
         hit = cache.get(k, stage, upstream=(run.key, run.artifact)) if key != "memory" else None

@@ -1,0 +1,95 @@
+"""The cache key covers all the code that shapes a stage's output (issue 18).
+
+A stage's entry is keyed by its own VERSION and by a digest of the source of its module and of every
+module of the package it imports, directly or through others. A change to code a stage calls — a solver
+shared with another stage, or a version number anywhere in that code — invalidates that stage's entry
+and the entries after it, and nothing before.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mocapskel import cache as cache_mod
+from mocapskel import pipeline
+from mocapskel.cache import Cache, code_digest, code_modules
+from mocapskel.io.markers import write_markers
+from mocapskel.synth.presets import Recipe, make
+
+STAGES = ("clean", "merge-ids", "segment", "topology", "joints", "rigid", "ik")
+
+
+def _stage(name: str) -> str:
+    return pipeline.stage_module(name).__name__
+
+
+@pytest.fixture()
+def fresh_digests():
+    cache_mod.code_digest.cache_clear()
+    yield
+    cache_mod.code_digest.cache_clear()
+
+
+def _changed(monkeypatch: pytest.MonkeyPatch, module: str) -> None:
+    """Make ``module``'s source read as if someone had edited it (a comment added)."""
+    real = cache_mod.module_source
+
+    def source(name: str) -> bytes | None:
+        src = real(name)
+        return src + b"\n# edited\n" if name == module and src is not None else src
+
+    monkeypatch.setattr(cache_mod, "module_source", source)
+    cache_mod.code_digest.cache_clear()
+
+
+def _ik_solver() -> str:
+    from mocapskel.solvers.ik import solve_ik
+
+    return solve_ik.__module__
+
+
+def test_a_stage_s_code_includes_the_solvers_it_shares_with_other_stages() -> None:
+    rigid, ik, segment = (code_modules(_stage(s)) for s in ("rigid", "ik", "segment"))
+    assert _stage("rigid") in rigid and _stage("segment") in segment
+    solver = _ik_solver()  # the rigid stage re-poses frames with the IK solver
+    assert solver in rigid and solver in ik and solver not in segment
+    assert "mocapskel.stages.ik" not in rigid  # a stage calls solvers, not another stage
+
+
+def test_the_digest_changes_with_code_the_stage_calls_and_only_then(monkeypatch, fresh_digests) -> None:
+    before = {s: code_digest(_stage(s)) for s in STAGES}
+    assert before == {s: code_digest(_stage(s)) for s in STAGES}  # stable
+    _changed(monkeypatch, _ik_solver())
+    after = {s: code_digest(_stage(s)) for s in STAGES}
+    changed = {s for s in STAGES if after[s] != before[s]}
+    assert {"rigid", "ik"} <= changed
+    assert not changed & {"clean", "merge-ids", "segment"}
+
+
+def test_edited_shared_code_recomputes_the_stages_that_run_it(tmp_path: Path, monkeypatch, fresh_digests) -> None:
+    take = tmp_path / "link.trc"
+    write_markers(take, make(Recipe(kind="linkage", frames=300, noise_mm=0.5, seed=1)).markers)
+    folder = tmp_path / "cache"
+    first = pipeline.run_until(take, "ik", cache=Cache(folder))
+    assert first.cached == []
+    again = pipeline.run_until(take, "ik", cache=Cache(folder))
+    assert again.cached == list(STAGES) and again.key == first.key
+    _changed(monkeypatch, _ik_solver())
+    edited = pipeline.run_until(take, "ik", cache=Cache(folder))
+    assert edited.cached == ["clean", "merge-ids", "segment", "topology", "joints"]
+    assert edited.key != first.key
+    # a version number bumped in a module the stage imports counts the same as any other edit
+    real = cache_mod.module_source
+    monkeypatch.setattr(cache_mod, "module_source", real)
+    cache_mod.code_digest.cache_clear()
+    rigid_mod = _stage("rigid")
+
+    def bumped(name: str) -> bytes | None:
+        src = real(name)
+        return src.replace(b"VERSION = ", b"VERSION = 1 + ", 1) if name == rigid_mod and src is not None else src
+
+    monkeypatch.setattr(cache_mod, "module_source", bumped)
+    cache_mod.code_digest.cache_clear()
+    bump = pipeline.run_until(take, "ik", cache=Cache(folder))
+    assert bump.cached == ["clean", "merge-ids", "segment", "topology", "joints"]
