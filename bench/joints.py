@@ -738,7 +738,7 @@ def _human_table(names, sq, hinges, n_takes, secs, cover):
 
 
 def section_human() -> str:
-    from mocapskel.synth.human import HINGES
+    from mocapskel.synth.body import HINGES
 
     seeds = (1, 2, 3) if not QUICK else (1,)
     methods = {

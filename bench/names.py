@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocapskel.synth.human import HUMANOID_NAMES
+from mocapskel.synth.body import HUMANOID_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = [REPO.parent / "shared" / "realref" / f"{n}.c3d" for n in ("cmu_16_07", "opensim_test_walking", "kinova_dynamique_pierre")]
@@ -29,7 +29,7 @@ EXPECTED = HUMANOID_NAMES
 
 
 def expected_names(skel) -> list[str]:
-    from mocapskel.synth.human import LABEL_CODES, PARENT, SEGMENTS
+    from mocapskel.synth.body import LABEL_CODES, PARENT, SEGMENTS
 
     code = dict(zip(LABEL_CODES, SEGMENTS))
 
@@ -49,7 +49,7 @@ def expected_names(skel) -> list[str]:
 def expected_realistic(skel, truth) -> list[str]:
     """The humanoid name of each fitted segment of a realistic take: that of the most proximal true
     segment among those its markers ride on (markers over a joint, which may ride either, left out)."""
-    from mocapskel.synth.human import PARENT, SEGMENTS
+    from mocapskel.synth.body import PARENT, SEGMENTS
 
     ok = dict(zip(truth.info["physical_labels"], truth.info["marker_segments_ok"]))
 

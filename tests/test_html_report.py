@@ -21,15 +21,10 @@ from mocapskel import artifacts, pipeline  # noqa: E402
 from mocapskel.cache import Cache  # noqa: E402
 from mocapskel.cli.main import cli  # noqa: E402
 from mocapskel.evaluate import joint_positions  # noqa: E402
-from mocapskel.html_report import (  # noqa: E402
-    MAX_PLOT_SAMPLES,
-    _json_for_script,
-    _reduce,
-    build_html,
-    joint_residual_series,
-    segment_residual_series,
-    viewer_data,
-)
+from mocapskel.html_report.data import joint_residual_series, segment_residual_series  # noqa: E402
+from mocapskel.html_report.page import build_html  # noqa: E402
+from mocapskel.html_report.plots import MAX_PLOT_SAMPLES, _reduce  # noqa: E402
+from mocapskel.html_report.viewer import _json_for_script, viewer_data  # noqa: E402
 from mocapskel.io.markers import write_markers  # noqa: E402
 from mocapskel.synth.presets import Recipe, make  # noqa: E402
 

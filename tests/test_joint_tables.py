@@ -219,7 +219,7 @@ def test_active_rom_ball_joints_by_score_within_target():
     """Active human ROM take (1 mm noise, 2 mm soft tissue, gaps; cleaned), true groups: SCoRE places
     the ball joints within DESIGN's 5 mm RMS (the hinges need the joints stage's axis rule)."""
     from mocapskel import pipeline
-    from mocapskel.synth.human import HINGES
+    from mocapskel.synth.body import HINGES
     from mocapskel.synth.presets import active_rom, make
 
     take = make(active_rom(1, frames=7200))

@@ -11,7 +11,7 @@ from mocapskel import pipeline
 from mocapskel.io.bvh import bvh_to_lab, forward_kinematics, read_bvh, write_bvh
 from mocapskel.naming import name_skeleton
 from mocapskel.stages import export
-from mocapskel.synth.human import HUMANOID_NAMES, LABEL_CODES, PARENT, SEGMENTS
+from mocapskel.synth.body import HUMANOID_NAMES, LABEL_CODES, PARENT, SEGMENTS
 from mocapskel.synth.presets import Recipe, make
 
 EXPECTED = HUMANOID_NAMES

@@ -11,7 +11,7 @@ import pytest
 from mocapskel import pipeline
 from mocapskel.naming import name_skeleton
 from mocapskel.stages import rigid, segment
-from mocapskel.synth.human import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
+from mocapskel.synth.body import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic
 
 

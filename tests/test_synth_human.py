@@ -6,7 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mocapskel.synth import corrupt
-from mocapskel.synth.human import HINGES, JOINT_NAMES, PARENT, SEGMENTS, human_take
+from mocapskel.synth.body import HINGES, JOINT_NAMES, PARENT, SEGMENTS
+from mocapskel.synth.human import human_take
 
 RATE_60S = 20.0  # 1200 frames at 20 Hz = a 60 s take, cheaply
 

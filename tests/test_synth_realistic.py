@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mocapskel.synth.human import JOINT_NAMES, PARENT, SEGMENTS, human_take
+from mocapskel.synth.body import JOINT_NAMES, PARENT, SEGMENTS
+from mocapskel.synth.human import human_take
 from mocapskel.synth.presets import Recipe, make, realistic
 from mocapskel.synth.realistic import realistic_take
 from mocapskel.synth.truth import Truth
