@@ -34,7 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Naming", "NotPerson", "name_skeleton", "SCHEMES", "JOINT_OF"]
+from .io.bvh import sanitize_names
+
+__all__ = ["Naming", "NotPerson", "name_skeleton", "segment_names", "SCHEMES", "JOINT_OF"]
 
 SCHEMES = ("auto", "humanoid", "segments")
 
@@ -428,3 +430,28 @@ def _sides(skel, motion, chains, attach, legs, arms, pelvis):
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 0, n, 1.0)
+
+
+_TRAIL = re.compile(r"[\d_\-\s.]+$")
+
+
+def segment_names(labels_per_segment: list[list[str]]) -> list[str]:
+    """Names for segments from their markers' labels (common prefix), else generic."""
+    names = []
+    for i, labels in enumerate(labels_per_segment):
+        pre = _common_prefix(labels) if labels else ""
+        pre = _TRAIL.sub("", pre)
+        if len(labels) == 1:
+            pre = _TRAIL.sub("", labels[0])
+        if len(pre) < 2 or re.fullmatch(r"[A-Za-z]?\d*", pre) or re.fullmatch(r"M\d*|Marker|marker|U|Unlabeled", pre):
+            pre = f"seg{i:02d}"
+        names.append(pre)
+    return list(sanitize_names(names))
+
+
+def _common_prefix(labels: list[str]) -> str:
+    s1, s2 = min(labels), max(labels)
+    i = 0
+    while i < min(len(s1), len(s2)) and s1[i] == s2[i]:
+        i += 1
+    return s1[:i]

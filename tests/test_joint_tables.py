@@ -293,7 +293,7 @@ def test_relative_turn_is_the_spread_about_the_mean_relative_rotation():
     whatever the segments' own motion; NaN frames are left out."""
     from scipy.spatial.transform import Rotation
 
-    from mocapskel.stages.joints import relative_turn_deg
+    from mocapskel.solvers.joint_centres import relative_turn_deg
 
     rng = np.random.default_rng(41)
     F = 3000

@@ -1,10 +1,11 @@
 """Rigid-fit residual and the split of a non-rigid group into two rigid bodies (solvers/partition.py,
-segment.split_nonrigid), against generated truth."""
+grouping.split_nonrigid), against generated truth."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from mocapskel.solvers import distances, grouping
 from mocapskel.solvers.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
 from mocapskel.solvers.rotations import rotvec_to_matrix
 from mocapskel.stages import segment
@@ -58,25 +59,25 @@ def test_best_split_needs_three_markers_a_side():
 
 
 def _labels(points: np.ndarray, std: np.ndarray, tau: float, reveal: float) -> np.ndarray:
-    lab, _ = segment.split_nonrigid(points, std, np.zeros(points.shape[1], dtype=int), tau, reveal,
-                                    np.random.default_rng(0))
+    lab, _ = grouping.split_nonrigid(points, std, np.zeros(points.shape[1], dtype=int), tau, reveal,
+                                     np.random.default_rng(0))
     return lab
 
 
 def test_split_nonrigid_splits_two_bodies_and_keeps_one():
     rng = np.random.default_rng(4)
     P, body = _two_bodies(rng, noise=0.5)
-    std, _ = segment.distance_std(P)
+    std, _ = distances.distance_std(P)
     lab = _labels(P, std, tau=2.0, reveal=10.0)
     assert np.array_equal(lab, body) or np.array_equal(lab, 1 - body)
     # one rigid body (B held still against A): rigid within the tolerance, nothing to split
     P1, _ = _two_bodies(np.random.default_rng(4), noise=0.5, amp_deg=0.0)
-    std1, _ = segment.distance_std(P1)
+    std1, _ = distances.distance_std(P1)
     assert _labels(P1, std1, tau=2.0, reveal=10.0).tolist() == [0] * P1.shape[1]
     # a joint that barely moves: the bodies' markers move against each other by less than the bar
     # at which the joint could be located, so they stay one group
     P2, _ = _two_bodies(np.random.default_rng(4), noise=0.5, amp_deg=2.0)
-    std2, _ = segment.distance_std(P2)
+    std2, _ = distances.distance_std(P2)
     assert rigid_rms(P2) > 1.2  # not rigid within this tolerance, and each body is
     assert _labels(P2, std2, tau=1.2, reveal=10.0).tolist() == [0] * P2.shape[1]
     assert _labels(P2, std2, tau=1.2, reveal=5.0).tolist() != [0] * P2.shape[1]  # the bar is what keeps it
@@ -93,7 +94,7 @@ def test_skin_motion_does_not_split_a_body():
     freq = rng.uniform(1.0, 3.0, (1, n, 3))
     skin = 6.0 * np.sin(2 * np.pi * freq * t + phase)
     Ps = P + skin
-    std, _ = segment.distance_std(Ps)
+    std, _ = distances.distance_std(Ps)
     assert rigid_rms(Ps) > 4.0
     assert _labels(Ps, std, tau=4.0, reveal=10.0).tolist() == [0] * n
 
@@ -129,10 +130,10 @@ def test_a_marker_put_with_the_wrong_body_goes_to_the_body_whose_frame_holds_it(
     lab = body.copy()
     m = int(np.flatnonzero(body == 1)[0])
     lab[m] = 0
-    got, moves = segment.reassign_by_frame(P, lab)
+    got, moves = grouping.reassign_by_frame(P, lab)
     assert moves == [(m, "reframed")]
     assert np.array_equal(got, body) or np.array_equal(got, 1 - body)
-    assert segment.reassign_by_frame(P, body)[1] == []  # the right groups: nothing moves
+    assert grouping.reassign_by_frame(P, body)[1] == []  # the right groups: nothing moves
 
 
 def test_no_marker_moves_between_groups_that_do_not_move_apart():
@@ -142,7 +143,7 @@ def test_no_marker_moves_between_groups_that_do_not_move_apart():
     P, body = _two_bodies(rng, n_a=5, n_b=5, noise=0.5, amp_deg=0.0)
     lab = body.copy()
     lab[int(np.flatnonzero(body == 1)[0])] = 0
-    assert segment.reassign_by_frame(P, lab)[1] == []
+    assert grouping.reassign_by_frame(P, lab)[1] == []
 
 
 def test_a_frames_own_fitting_error_is_not_taken_for_motion():
@@ -156,7 +157,7 @@ def test_a_frames_own_fitting_error_is_not_taken_for_motion():
     R = rotvec_to_matrix(np.deg2rad(30.0) * np.column_stack([np.sin(t), np.cos(2 * t), 0.5 * np.sin(3 * t)]))
     P = np.einsum("kij,nj->kni", R, shape) + rng.normal(0.0, 1.0, (K, 5, 3))
     P[:, 4] += np.einsum("kij,kj->ki", R, 8.0 * np.column_stack([np.sin(3 * t), np.cos(5 * t), np.sin(7 * t)]) / np.sqrt(1.5))
-    whole, loo = frame_scatters(P, np.array([0, 1, 2]), segment.SPLIT_FRAMES, segment.SPLIT_MIN_FRAMES)
+    whole, loo = frame_scatters(P, np.array([0, 1, 2]), grouping.SPLIT_FRAMES, grouping.SPLIT_MIN_FRAMES)
     raw, beyond = whole
     assert np.isnan(loo).all()  # three markers: no frame without one of them
     assert raw[3] > 10.0 and beyond[3] < 0.5 * raw[3]  # rigid: the scatter is mostly the frame's turn (150 frames)

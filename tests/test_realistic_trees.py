@@ -10,6 +10,8 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.naming import name_skeleton
+from mocapskel.solvers import grouping
+from mocapskel.solvers.partition import scatter_in_frame
 from mocapskel.stages import rigid, segment
 from mocapskel.synth.body import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic
@@ -129,9 +131,9 @@ def test_absorb_pairs_joins_crossing_pairs_and_a_straddling_pair_only() -> None:
     P = world(np.concatenate([pelvis, thorax, skin, limb], axis=1)) + rng.normal(0.0, 0.5, (K, 11, 3))
     labels = np.array([0, 1, 1, 0, 2, 2, 2, 3, 3, 4, 4])  # the pelvis paired diagonally
     d = np.linalg.norm(P[:, :, None] - P[:, None], axis=-1).mean(0)
-    scatter = segment.scatter_in_frame(P[:, [4, 5, 6, 9, 10]], np.arange(3))[3:]
+    scatter = scatter_in_frame(P[:, [4, 5, 6, 9, 10]], np.arange(3))[3:]
     assert 8.0 < scatter.max() < 25.0  # the limb moves against the thorax, by less than the bar
-    lab, moves = segment.absorb_pairs(P, labels, reveal=25.0, mean_d=d, reach=1000.0, tau=3.0)
+    lab, moves = grouping.absorb_pairs(P, labels, reveal=25.0, mean_d=d, reach=1000.0, tau=3.0)
     assert len(set(lab[:4].tolist())) == 1  # the crossing pairs joined
     assert len(set(lab[4:9].tolist())) == 1 and lab[4] != lab[0]  # the skin pair joined the thorax
     assert lab[9] == lab[10] and lab[9] not in set(lab[:9].tolist())  # the limb stayed a segment

@@ -3,6 +3,7 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.errors import DataError
+from mocapskel.solvers import distances, grouping
 from mocapskel.stages import segment
 from mocapskel.synth.chains import hang_chain
 
@@ -60,7 +61,7 @@ def test_distance_std_is_bit_for_bit_the_plain_formula():
             mean = np.where(ok, d, 0.0).sum(axis=0) / cnt
             std = np.sqrt((np.where(ok, d - mean, 0.0) ** 2).sum(axis=0) / cnt)
         std[cnt < 2] = np.nan
-        got, got_cnt = segment.distance_std(pts)
+        got, got_cnt = distances.distance_std(pts)
         assert np.array_equal(got_cnt, cnt) and got_cnt.dtype == cnt.dtype
         if M > 2:  # two markers: one pair, whose sum numpy may add pairwise instead of in order
             assert np.array_equal(got, std, equal_nan=True)
@@ -136,7 +137,7 @@ def test_average_linkage_heights_match_scipy():
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
-    from mocapskel.stages.segment import average_linkage_heights, rigid_groups
+    from mocapskel.solvers.distances import average_linkage_heights, rigid_groups
 
     rng = np.random.default_rng(3)
     for M in (2, 3, 7, 30, 90):
@@ -149,7 +150,7 @@ def test_average_linkage_heights_match_scipy():
 
 
 def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_other() -> None:
-    from mocapskel.stages.segment import merge_still_groups
+    from mocapskel.solvers.distances import merge_still_groups
 
     # four groups: 0 and 1 vary against each other by 2 mm, 2 against both by 20 mm, 3 alone by 40 mm
     lab = np.array([0, 0, 1, 1, 1, 2, 2, 3])
@@ -162,7 +163,7 @@ def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_othe
 
 
 def test_absorb_lone_markers_by_the_farthest_member_when_asked():
-    from mocapskel.stages.segment import absorb_lone_markers
+    from mocapskel.solvers.grouping import absorb_lone_markers
 
     # marker 4 alone: against group 0 (markers 0, 1) it varies by 2 and 9 mm, against group 1
     # (markers 2, 3) by 30 and 40 mm
@@ -275,7 +276,7 @@ def test_a_lone_marker_takes_no_partner_that_is_far_more_rigid_with_its_own_grou
     """A lone thigh marker (4) and a group of four pelvis markers (0-3): a pelvis marker whose distance to
     the thigh marker varies 8 mm against 2 mm to its own group is the pelvis's, not a marker on the hip's
     axis; one that varies 3 mm to both sides is (a knee or elbow marker), and pairs."""
-    from mocapskel.stages.segment import PARTNER_RATIO, pair_lone_markers
+    from mocapskel.solvers.grouping import PARTNER_RATIO, pair_lone_markers
 
     M = 5
     mean_d = np.full((M, M), 150.0)
@@ -295,7 +296,7 @@ def test_a_lone_marker_takes_no_partner_that_is_far_more_rigid_with_its_own_grou
 def test_a_lone_marker_is_absorbed_by_the_group_nearest_in_space():
     """Skin on a body is on it: a lone marker (4) 150 mm from one group (0, 1) and 500 mm from another
     (2, 3) that it varies less against joins the near one, or none."""
-    from mocapskel.stages.segment import absorb_lone_markers
+    from mocapskel.solvers.grouping import absorb_lone_markers
 
     M = 5
     mean_d = np.full((M, M), 150.0)
@@ -326,12 +327,12 @@ def _on_joint_case(between: float, far: float = 1.0):
 
 def test_a_lone_marker_on_the_joint_of_two_groups_joins_the_nearer_in_motion():
     std, d, lab = _on_joint_case(between=30.0)
-    new, moves = segment.join_markers_on_joints(std, d, lab)
+    new, moves = grouping.join_markers_on_joints(std, d, lab)
     assert new.tolist() == [0, 0, 0, 1, 1, 1, 0] and moves == [(6, "on a joint")]
     # the groups hardly move against each other: its distances say nothing of a joint
-    assert segment.join_markers_on_joints(*_on_joint_case(between=10.0))[0].tolist() == lab.tolist()
+    assert grouping.join_markers_on_joints(*_on_joint_case(between=10.0))[0].tolist() == lab.tolist()
     # not between them: far from both, any marker's distances vary little
-    assert segment.join_markers_on_joints(*_on_joint_case(between=30.0, far=3.0))[0].tolist() == lab.tolist()
+    assert grouping.join_markers_on_joints(*_on_joint_case(between=30.0, far=3.0))[0].tolist() == lab.tolist()
 
 
 def test_real_epicondyle_between_arm_and_forearm_clusters_joins_the_arm():
@@ -370,7 +371,7 @@ def test_a_lone_marker_that_turns_about_a_point_of_its_group_is_told_from_skin_o
     marker that keeps still on the group (1 mm noise: its path fits a sphere of 3 mm about a point beside
     it, within a level of 2 mm), nor one that turns 3 degrees (a short arc: the fit takes a small sphere)."""
     from mocapskel.solvers.rotations import rotvec_to_matrix
-    from mocapskel.stages.segment import turns_about_a_point
+    from mocapskel.solvers.grouping import turns_about_a_point
 
     rng = np.random.default_rng(0)
     K = 300

@@ -8,7 +8,6 @@ is the subject as seen at a reference frame, so offsets are the real skeleton.
 """
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -16,7 +15,8 @@ import numpy as np
 
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
-from ..io.bvh import depth_first_order, sanitize_names
+from ..io.bvh import depth_first_order
+from ..naming import segment_names
 from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.ik import solve_ik
@@ -111,31 +111,6 @@ def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray,
     jvis = np.isfinite(joints[:n]).all(-1).sum(1)
     score = full * 10_000 + jvis * 100 + vis.sum(1)
     return int(np.argmax(score))
-
-
-_TRAIL = re.compile(r"[\d_\-\s.]+$")
-
-
-def segment_names(labels_per_segment: list[list[str]]) -> list[str]:
-    """Names for segments from their markers' labels (common prefix), else generic."""
-    names = []
-    for i, labels in enumerate(labels_per_segment):
-        pre = _common_prefix(labels) if labels else ""
-        pre = _TRAIL.sub("", pre)
-        if len(labels) == 1:
-            pre = _TRAIL.sub("", labels[0])
-        if len(pre) < 2 or re.fullmatch(r"[A-Za-z]?\d*", pre) or re.fullmatch(r"M\d*|Marker|marker|U|Unlabeled", pre):
-            pre = f"seg{i:02d}"
-        names.append(pre)
-    return list(sanitize_names(names))
-
-
-def _common_prefix(labels: list[str]) -> str:
-    s1, s2 = min(labels), max(labels)
-    i = 0
-    while i < min(len(s1), len(s2)) and s1[i] == s2[i]:
-        i += 1
-    return s1[:i]
 
 
 def run(joints: Joints, params: Params = Params()) -> Skeleton:
