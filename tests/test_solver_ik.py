@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from mocapskel.solvers import ik
-from mocapskel.solvers.ik import solve_ik
+from mocapskel.solvers import ik_model, ik_planes, ik_segment_poses, ik_solve
+from mocapskel.solvers.ik_solve import solve_ik
 
 # --------------------------------------------------------------------------- synthetic skeletons
 
@@ -88,9 +88,9 @@ def test_structured_step_matches_dense_normal_equations():
     parent, origin, seg, loc = make_tree(rng, S, chain=False, n_markers=lambda s, leaf, pc: int(rng.integers(1, 5)))
     R, root = make_motion(rng, F, S)
     _, x = forward(parent, origin, seg, loc, R, root)
-    tree = ik._Tree(parent)
+    tree = ik_model._Tree(parent)
     inv = np.argsort(tree.perm)
-    model = ik._Model(tree, origin[tree.perm], inv[seg], loc)
+    model = ik_model._Model(tree, origin[tree.perm], inv[seg], loc)
     # kernels' layout: component planes, frames last
     Rs = np.ascontiguousarray(perturb(rng, R[:, tree.perm], 5, 30).transpose(2, 3, 1, 0))
     p = (root + rng.normal(0, 20, (F, 3))).T.copy()
@@ -101,12 +101,12 @@ def test_structured_step_matches_dense_normal_equations():
     r = model.markers(p, Rs) - y
     np.testing.assert_allclose(c, np.einsum("ksf,kisf->f", w, r * r), rtol=1e-12)
     G, P = model.fk(p, Rs)
-    a = ik._c_mv(Rs, st["lbar"])
+    a = ik_planes._c_mv(Rs, st["lbar"])
     d = P + a - st["ybar"]
     # the cost from the sums
-    c_st = (st["c0"] + st["W"] * ik._c_dot(d, d) - 2 * np.einsum("ijsf,ijsf->sf", Rs, st["Cc"])).sum(0)
+    c_st = (st["c0"] + st["W"] * ik_planes._c_dot(d, d) - 2 * np.einsum("ijsf,ijsf->sf", Rs, st["Cc"])).sum(0)
     np.testing.assert_allclose(c_st, c, rtol=1e-10)
-    H, g = ik._dense_system(model, p, Rs, y, w, e, 7.0)
+    H, g = ik_model._dense_system(model, p, Rs, y, w, e, 7.0)
     want = -np.linalg.solve(H, g[..., None])[..., 0]
     dp, dr, pred = model.step(Rs, G, a, d, st, e, 7.0, np.zeros(F), 0.0)
     got = np.concatenate([dp.T[:, None], dr.transpose(2, 1, 0)], 1).reshape(F, -1)
@@ -126,13 +126,13 @@ def test_rotation_helpers():
     rv *= (rng.uniform(0, np.pi - 1e-6, 500) / np.linalg.norm(rv, axis=1))[:, None]
     rv[:5] *= 1e-9  # tiny angles
     rv[5:10] *= (np.pi - 1e-9) / np.linalg.norm(rv[5:10], axis=1)[:, None]  # almost pi
-    R = ik._exp(rv)
+    R = ik_planes._exp(rv)
     np.testing.assert_allclose(R, Rotation.from_rotvec(rv).as_matrix(), atol=1e-12)
-    np.testing.assert_allclose(ik._log(R), rv, atol=1e-7)
-    np.testing.assert_allclose(ik._log(R[10:]), rv[10:], atol=1e-10)
-    np.testing.assert_allclose(ik._quat_to_mat(ik._mat_to_quat(R)), R, atol=1e-12)
+    np.testing.assert_allclose(ik_planes._log(R), rv, atol=1e-7)
+    np.testing.assert_allclose(ik_planes._log(R[10:]), rv[10:], atol=1e-10)
+    np.testing.assert_allclose(ik_planes._quat_to_mat(ik_planes._mat_to_quat(R)), R, atol=1e-12)
     A = rng.normal(size=(50, 3, 3))
-    np.testing.assert_allclose(ik._inv3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-9)
+    np.testing.assert_allclose(ik_planes._inv3(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-9)
 
 
 # --------------------------------------------------------------------------- noise-free recovery
@@ -499,7 +499,7 @@ def test_blocks_and_output_array_do_not_change_the_answer(monkeypatch):
     obs = x + rng.normal(0, 1.0, x.shape)
     prior = perturb(rng, R, 0.5, 2)
     one = solve_ik(parent, origin, seg, loc, obs, prior_rot=prior, init_root=root)
-    monkeypatch.setattr(ik, "_BLOCK", 64)  # several blocks, the last one short
+    monkeypatch.setattr(ik_solve, "_BLOCK", 64)  # several blocks, the last one short
     many = solve_ik(parent, origin, seg, loc, obs, prior_rot=prior, init_root=root)
     np.testing.assert_array_equal(many.rot, one.rot)
     np.testing.assert_array_equal(many.root_pos, one.root_pos)
@@ -516,12 +516,12 @@ def test_blocks_and_output_array_do_not_change_the_answer(monkeypatch):
     np.testing.assert_array_equal(threaded.rot, one.rot)
     np.testing.assert_array_equal(threaded.residual, one.residual)
     np.testing.assert_array_equal(threaded.converged, one.converged)
-    monkeypatch.setattr(ik, "_POSE_BLOCK", 64)
+    monkeypatch.setattr(ik_segment_poses, "_POSE_BLOCK", 64)
     shapes = [origin[s] + loc[seg == s] for s in range(len(parent))]
     cols = [np.flatnonzero(seg == s) for s in range(len(parent))]
-    Rt, tt = ik.segment_poses(shapes, cols, [obs])
+    Rt, tt = ik_segment_poses.segment_poses(shapes, cols, [obs])
     monkeypatch.setenv("MOCAPSKEL_THREADS", "1")
-    Rs, ts = ik.segment_poses(shapes, cols, [obs])
+    Rs, ts = ik_segment_poses.segment_poses(shapes, cols, [obs])
     np.testing.assert_array_equal(Rt, Rs)
     np.testing.assert_array_equal(tt, ts)
 
@@ -550,7 +550,7 @@ def test_segment_poses_match_kabsch():
     pts[rng.random((F, Q)) < 0.3] = np.nan
     pts[:5, columns[1][2]] = np.nan  # only collinear points (0, 1, 3) of shape 1 left in some frames
     pts[:5, columns[1][1:3]] = np.nan
-    R, t = ik.segment_poses(shapes, columns, [pts[:, :25], pts[:, 25:]])  # two arrays side by side
+    R, t = ik_segment_poses.segment_poses(shapes, columns, [pts[:, :25], pts[:, 25:]])  # two arrays side by side
     for b, (ref, cols) in enumerate(zip(shapes, columns)):
         Rk, tk, _ = kabsch(ref, pts[:, cols])
         np.testing.assert_array_equal(np.isnan(R[:, b, 0, 0]), np.isnan(Rk[:, 0, 0]))

@@ -28,7 +28,9 @@ from ..artifacts import Motion, Skeleton, markers_of
 from ..checks import frames_text
 from ..errors import DataError
 from ..solvers.calibrate import track
-from ..solvers.ik import segment_poses, solve_ik, unflip
+from ..solvers.ik_segment_poses import segment_poses
+from ..solvers.ik_solve import solve_ik
+from ..solvers.ik_unflip import unflip
 from ..solvers.rotations import hold_unobserved, observed_below, segments_seen, slerp_fill_joints
 
 VERSION = 7
@@ -53,7 +55,7 @@ class Params:
     max_step_deg: float = 45.0
     """Stretches of up to 0.5 s that a segment spends between two turns of more than this
     (deg) in one frame are solved again from its rotation slerped across them, and take
-    the new poses where they fit as well (:func:`~mocapskel.solvers.ik.unflip`); 0: never."""
+    the new poses where they fit as well (:func:`~mocapskel.solvers.ik_unflip.unflip`); 0: never."""
 
 
 def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +63,7 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
 
     points : (F, M, 3) observed markers; centres : (F, E, 3) joint centres or None.
     Every segment is fitted to its markers and the centres of its joints, all
-    segments and frames at once (:func:`~mocapskel.solvers.ik.segment_poses`).
+    segments and frames at once (:func:`~mocapskel.solvers.ik_segment_poses.segment_poses`).
     """
     F, M = points.shape[:2]
     S = len(skel.names)

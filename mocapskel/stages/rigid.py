@@ -19,7 +19,7 @@ from ..io.bvh import depth_first_order
 from ..naming import segment_names
 from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
-from ..solvers.ik import solve_ik
+from ..solvers.ik_solve import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between, segments_seen
 
