@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mocapskel import pipeline
-from mocapskel.naming import name_skeleton
+from mocapskel.model.naming import name_skeleton
 from mocapskel.stages import rigid, segment
 from mocapskel.synth.human import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic

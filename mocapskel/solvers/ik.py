@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..parallel import run_blocks
+from .parallel import run_blocks
 from .rigid import _adj4, kabsch
 from .rotations import fill_joint
 

@@ -33,9 +33,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..artifacts import Joints, Topology
-from ..checks import marker_extent
+from ..model.measures import marker_extent
 from ..errors import DataError
-from ..parallel import run_blocks, run_forked
+from ..solvers.parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import distance_penalty, jmv_joint_long, joint_cost
 from ..solvers.rigid import shape_poses

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Segments, Topology
-from ..checks import marker_extent
+from ..model.measures import marker_extent
 from ..errors import DataError
-from ..parallel import n_threads, run_forked
+from ..solvers.parallel import n_threads, run_forked
 from ..solvers.jmv import balanced_alpha, distance_penalty, pair_cost
 from ..solvers.mtb import mtb_basis
 from ..solvers.partition import rigid_rms
