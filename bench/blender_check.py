@@ -237,7 +237,9 @@ def check_frame(motion, up: str, units: str, work: Path, frames: list[int], *,
 
     Raises RuntimeError when Blender fails, subprocess.TimeoutExpired after ``timeout`` s.
     """
-    from mocapskel.io.bvh import UNIT_SCALE, bvh_to_lab, forward_kinematics, read_bvh, write_bvh
+    from mocapskel.solvers.bvh_pose import UNIT_SCALE, bvh_to_lab, forward_kinematics
+    from mocapskel.io.bvh_read import read_bvh
+    from mocapskel.io.bvh import write_bvh
     from mocapskel.stages import export
 
     p = export.Params(up=up, units=units, names=names, rest=rest)

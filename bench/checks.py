@@ -51,7 +51,7 @@ CHECKS = ("residual", "bone_length", "joint_far", "joint_step", "rotation_flip",
 
 def euler_spikes(path: Path) -> tuple[int, float, str]:
     """(joint-frames with a rotation channel step > 10 deg where the rotation turns < 2 deg, largest such step, orders)."""
-    from mocapskel.io.bvh import read_bvh
+    from mocapskel.io.bvh_read import read_bvh
 
     skel, _, local, _ = read_bvh(path)
     text = path.read_text().splitlines()

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-real", action="store_true")
     a = ap.parse_args(argv)
     from mocapskel import pipeline
-    from mocapskel.naming import name_skeleton
+    from mocapskel.model.naming import name_skeleton
     from mocapskel.synth.presets import Recipe, make
 
     rows = ["| take | segments | recognised | names right (labels) | names right (geometry only) | note |",

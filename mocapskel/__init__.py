@@ -8,7 +8,7 @@ import os as _os
 # These variables act only where numpy is first imported after this; where it was
 # imported before (``import numpy`` then ``import mocapskel``: twice the time of a fit
 # measured on two cores), the pipeline's entry points set the same limit at run time
-# (see mocapskel.parallel.one_blas_thread).
+# (see mocapskel.blas.one_blas_thread).
 # A process started from one that imported mocapskel inherits the variables it set;
 # MOCAPSKEL_BLAS_DEFAULT says they are ours, not the user's.
 _BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")

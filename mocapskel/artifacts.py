@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import os
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
@@ -310,30 +309,9 @@ def to_bytes(obj: Any, refs: dict[int, str] | None = None) -> bytes:
     return buf.getvalue()
 
 
-def save(obj: Any, path: str | os.PathLike, refs: dict[int, str] | None = None) -> None:
-    """Save an artifact to ``path`` atomically (temporary file, then rename)."""
-    from .io.atomic import atomic_write_bytes
-
-    atomic_write_bytes(path, to_bytes(obj, refs))
-
-
 class Unresolved(LookupError):
     """Raised by a ``resolve`` callback that cannot give the artifact a reference names; passed through by
     :func:`from_arrays` (the caller decides what a missing upstream means)."""
-
-
-def read_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """The arrays of an ``.npz`` file (no pickles). Raises InputError when it cannot be read as one."""
-    try:  # open the file here: np.load leaks its own handle when the zip is damaged (ResourceWarning)
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-            if not hasattr(z, "files"):
-                raise ValueError("a single array, not an archive of arrays")
-            return {k: z[k] for k in z.files}
-    except OSError as e:
-        raise InputError(f"not a readable mocapskel artifact ({e.strerror or e}) — re-run the stage that wrote it", str(path)) from None
-    except Exception as e:  # a damaged or crafted archive makes np.load and zipfile raise all kinds of errors
-        what = str(e).splitlines()[0][:120] if str(e) else type(e).__name__
-        raise InputError(f"not a readable mocapskel artifact ({what}) — re-run the stage that wrote it", str(path)) from None
 
 
 def from_arrays(data: dict[str, np.ndarray], path: str = "", resolve: Callable[[str], Any] | None = None) -> Any:
@@ -369,17 +347,6 @@ def from_arrays(data: dict[str, np.ndarray], path: str = "", resolve: Callable[[
         what = f"{type(e).__name__}: {str(e).splitlines()[0][:120]}" if str(e) else type(e).__name__
         raise InputError(f"damaged mocapskel artifact ({what}) — re-run the stage that wrote it", where) from None
     return obj
-
-
-def load(path: str | os.PathLike, resolve: Callable[[str], Any] | None = None) -> Any:
-    """Load an artifact saved by :func:`save`, checked. Raises InputError when it is not one.
-
-    ``resolve`` turns a stored reference back into the artifact (see :func:`to_bytes`).
-    """
-    from .io.paths import require_regular_file
-
-    require_regular_file(path, "a .npz artifact written by mocapskel")
-    return from_arrays(read_arrays(path), str(path), resolve)
 
 
 # --------------------------------------------------------------------------- checks

@@ -34,6 +34,7 @@ import numpy as np
 
 from . import artifacts
 from .errors import InputError
+from .io import artifact_files
 from .io.atomic import atomic_write_bytes
 
 log = logging.getLogger("mocapskel")
@@ -226,7 +227,7 @@ class Cache:
         if not path.is_file():
             return None
         try:
-            data = artifacts.read_arrays(path)
+            data = artifact_files.read_arrays(path)
         except InputError:
             self._discard(key, stage, "was unreadable")
             return None

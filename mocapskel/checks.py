@@ -63,10 +63,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .artifacts import Motion
-from .kinematics import segment_origins
+from .model.kinematics import segment_origins
+from .model.measures import frames_text, marker_extent
+from .model.tree import like_limb_pairs, unlike_bones
 
-__all__ = ["Finding", "Limits", "run_checks", "marker_extent", "frames_text", "like_chains", "limb_chains",
-           "like_limb_pairs", "unlike_bones"]
+__all__ = ["Finding", "Limits", "run_checks"]
 
 
 @dataclass(frozen=True)
@@ -109,34 +110,6 @@ class Finding:
     def as_dict(self) -> dict:
         return {"check": self.check, "name": self.name, "frames": frames_text(self.frames), "n_frames": len(self.frames),
                 "message": self.message}
-
-
-def frames_text(frames: tuple[int, ...] | np.ndarray, most: int = 8) -> str:
-    """Frames as runs, e.g. ``"12-14, 30 (+5 more runs)"``; ``""`` for none."""
-    f = np.unique(np.asarray(frames, dtype=np.int64))
-    if f.size == 0:
-        return ""
-    brk = np.flatnonzero(np.diff(f) > 1)
-    starts = np.r_[f[0], f[brk + 1]]
-    ends = np.r_[f[brk], f[-1]]
-    parts = [str(a) if a == b else f"{a}-{b}" for a, b in zip(starts[:most].tolist(), ends[:most].tolist())]
-    more = starts.size - most
-    return ", ".join(parts) + (f" (+{more} more runs)" if more > 0 else "")
-
-
-def marker_extent(points: np.ndarray, n_frames: int = 400) -> float:
-    """The subject's size: median over (up to ``n_frames`` evenly spread) frames of the
-    largest distance between two markers seen in that frame (mm; NaN if no frame shows two)."""
-    F = points.shape[0]
-    idx = np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
-    d = []
-    for f in idx:  # a few hundred frames, each a small pairwise matrix
-        p = points[f]
-        p = p[np.isfinite(p).all(1)]
-        if p.shape[0] >= 2:
-            diff = p[:, None, :] - p[None, :, :]
-            d.append(float(np.sqrt((diff * diff).sum(-1)).max()))
-    return float(np.median(d)) if d else float("nan")
 
 
 def _joint_name(names: tuple[str, ...], parent: np.ndarray, s: int) -> str:
@@ -264,7 +237,7 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    f"frames (up to {rel[:, s].max():.0f} degrees) while its markers hardly move",
                                    tuple(bad.tolist())))
 
-    from .naming import recognise
+    from .model.naming import recognise
 
     naming = recognise(sk, motion)  # a person's, or why not (see mocapskel.naming)
     out.extend(_limb_asymmetry(motion, limits.asymmetry, naming))
@@ -273,29 +246,6 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
     for s, note in (joint_notes or {}).items():
         jn = _joint_name(names, parent, s)
         out.append(Finding("not_converged", jn, f"joint {jn}: the centre fit did not converge ({note})"))
-    return out
-
-
-def like_limb_pairs(parent: np.ndarray) -> list[tuple[int, int, int]]:
-    """``(segment, its like, k)`` down every pair of like limbs (:func:`like_chains`), ``k`` counting from the
-    chains' first segments."""
-    return [(s_a, s_b, k) for a, b in like_chains(parent)
-            for k, (s_a, s_b) in enumerate(zip(limb_chains(parent, a), limb_chains(parent, b)))]
-
-
-def unlike_bones(skel, pairs: list[tuple[int, int]], tol: float) -> list[tuple[int, int, float, float]]:
-    """Of the segment pairs ``(a, b)``, those whose bones (each to its one child joint; a limb's end has none)
-    differ by more than ``tol`` of the shorter: ``(a, b, length of a's, length of b's)``."""
-    parent = np.asarray(skel.parent)
-    off = np.linalg.norm(skel.offset, axis=1)
-    out = []
-    for a, b in pairs:
-        kids = [np.flatnonzero(parent == s) for s in (a, b)]
-        if any(k.size != 1 for k in kids):
-            continue  # a limb's end: no bone to the next joint
-        la, lb = float(off[kids[0][0]]), float(off[kids[1][0]])
-        if la > 0 and lb > 0 and max(la, lb) > (1.0 + tol) * min(la, lb):
-            out.append((a, b, la, lb))
     return out
 
 
@@ -394,28 +344,6 @@ def _limb_mirror(motion: Motion, tol: float, naming) -> list[Finding]:
                                f"spacing; a person's lie on it), the left {from_mid[0]:.0f} mm and the right {from_mid[1]:.0f} mm from the "
                                "midline — one of the three joints is poorly determined (the take hardly moves it) or a segment "
                                "holds markers of its neighbour"))
-    return out
-
-
-def limb_chains(parent: np.ndarray, s: int) -> list[int]:
-    """Segment ``s`` and its descendants down a chain (while each has one child)."""
-    out = [int(s)]
-    while (kids := np.flatnonzero(parent == out[-1])).size == 1:
-        out.append(int(kids[0]))
-    return out
-
-
-def like_chains(parent: np.ndarray) -> list[tuple[int, int]]:
-    """Pairs of children of one segment that are chains of the same length, two segments or more."""
-    out = []
-    for p in range(len(parent)):
-        kids = [int(k) for k in np.flatnonzero(parent == p)]
-        chains = {c: limb_chains(parent, c) for c in kids}
-        for i, a in enumerate(kids):
-            for b in kids[i + 1:]:
-                ca, cb = chains[a], chains[b]
-                if len(ca) == len(cb) >= 2 and all(not (parent == x).any() for x in (ca[-1], cb[-1])):
-                    out.append((a, b))
     return out
 
 

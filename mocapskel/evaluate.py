@@ -131,7 +131,7 @@ def score_motion(motion: Motion, truth: Truth, truth_labels: tuple[str, ...] | N
 
 def joint_positions(motion: Motion) -> np.ndarray:
     """(F, S, 3) world position of every segment origin (joint) from the IK solution."""
-    from .kinematics import segment_origins
+    from .model.kinematics import segment_origins
 
     return segment_origins(motion)
 

@@ -20,7 +20,8 @@ from . import artifacts
 from .artifacts import Markers
 from .cache import Cache, code_digest, file_key, stage_key
 from .errors import DataError, InputError, UsageError
-from .parallel import one_blas_thread
+from .blas import one_blas_thread
+from .io import artifact_files
 
 log = logging.getLogger("mocapskel")
 
@@ -91,7 +92,7 @@ def read_input(path: str | os.PathLike, read: ReadOptions = ReadOptions(), *, ha
         st = p.stat()
         key = stage_key("read", 0, dataclasses.asdict(read), f"file:{p.resolve()}:{st.st_size}:{st.st_mtime_ns}")
     if p.suffix.lower() == ARTIFACT_SUFFIX:
-        return artifacts.load(p), key
+        return artifact_files.load(p), key
     from .io.markers import read_markers
 
     return read_markers(p, exclude=read.exclude, include=read.include), key

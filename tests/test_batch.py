@@ -24,7 +24,7 @@ from mocapskel.batch.inputs import collect_inputs, take_names
 from mocapskel.batch.proportions import proportion_distance
 from mocapskel.batch.summary import SUMMARY_COLUMNS, read_summary
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import read_bvh
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import write_markers
 from mocapskel.synth.presets import Recipe, make
 

@@ -13,25 +13,11 @@ from scipy.spatial.transform import Rotation
 
 from mocapskel.errors import InputError
 from mocapskel.io import bvh as bvh_module
-from mocapskel.io.bvh import (
-    NAME_PATTERN,
-    UNIT_SCALE,
-    BvhSkeleton,
-    bvh_rot_to_lab,
-    bvh_text,
-    bvh_to_lab,
-    check_names,
-    depth_first_order,
-    forward_kinematics,
-    global_to_local_rot,
-    lab_rot_to_bvh,
-    lab_to_bvh,
-    local_to_global_rot,
-    parse_bvh,
-    read_bvh,
-    sanitize_names,
-    write_bvh,
-)
+from mocapskel.solvers import bvh_pose
+from mocapskel.model.tree import NAME_PATTERN, check_names, depth_first_order, sanitize_names
+from mocapskel.solvers.bvh_pose import UNIT_SCALE, BvhSkeleton, bvh_rot_to_lab, bvh_to_lab, forward_kinematics, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh, local_to_global_rot
+from mocapskel.io.bvh import bvh_text, write_bvh
+from mocapskel.io.bvh_read import parse_bvh, read_bvh
 from mocapskel.solvers.rotations import ORDERS, euler_to_matrix, rotvec_to_matrix
 
 with warnings.catch_warnings():
@@ -596,7 +582,7 @@ def test_lab_rot_to_bvh_is_the_signed_permutation_exactly() -> None:
     R = rotvec_to_matrix(rng.normal(size=(300, 6, 3)))
     joints = np.array([3, 0, 5, 1, 2, 4])
     for up in ("y", "z"):
-        C = bvh_module._axes(up)
+        C = bvh_pose._axes(up)
         want = C @ R @ C.T
         got = lab_rot_to_bvh(R, up)
         np.testing.assert_array_equal(got, want)

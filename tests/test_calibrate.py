@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
-from mocapskel.kinematics import segment_origins
+from mocapskel.model.kinematics import segment_origins
 from mocapskel.solvers.calibrate import pick_frames, refine_skeleton, track
 from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid

@@ -17,7 +17,9 @@ from hypothesis import strategies as st
 from mocapskel import checks, pipeline
 from mocapskel.artifacts import markers_of
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import bvh_rot_to_lab, bvh_to_lab, forward_kinematics, read_bvh, write_bvh
+from mocapskel.solvers.bvh_pose import bvh_rot_to_lab, bvh_to_lab, forward_kinematics
+from mocapskel.io.bvh_read import read_bvh
+from mocapskel.io.bvh import write_bvh
 from mocapskel.io.markers import write_markers
 from mocapskel.io.skeleton import write_skeleton
 from mocapskel.synth.chains import hang_chain
@@ -211,7 +213,7 @@ def test_a_hip_slid_along_the_thigh_warns_of_asymmetric_limbs(human_fit) -> None
     """A hip slid 30 % of the thigh along it (the markers of a walk hardly fix it there: a generated gait take's
     left thigh came out 557 mm against the right's 463, though that lower-body tree is not taken for a person)
     makes one thigh of this full-body person longer than the other: said, naming both."""
-    from mocapskel.naming import recognise
+    from mocapskel.model.naming import recognise
 
     _, res = human_fit
     motion = res.motion
@@ -239,7 +241,7 @@ def test_like_limbs_of_a_skeleton_not_taken_for_a_person_are_compared_too(human_
     the left's 442, its thigh marker alone on its segment, and nothing said so). The same hip slid 30 % of the
     thigh, in this person's skeleton looked at as not a person: said, naming both first segments of the two
     legs; the untouched fit has none."""
-    from mocapskel import naming as naming_mod
+    from mocapskel.model import naming as naming_mod
 
     _, res = human_fit
     motion = res.motion
@@ -287,7 +289,7 @@ def test_a_shoulder_put_in_the_neck_warns_that_the_shoulders_are_not_mirrored(hu
     shoulder moved 80 % of the way to the midline: said, naming both shoulders; 20 % of the way (a shoulder the
     fit left a little inside): not said; the untouched fit, whose midline joints lie on the shoulders'
     mid-plane, has none."""
-    from mocapskel.naming import recognise
+    from mocapskel.model.naming import recognise
 
     _, res = human_fit
     motion = res.motion
@@ -309,7 +311,7 @@ def test_a_lumbar_joint_off_the_hips_midline_warns(human_fit) -> None:
     """A real CMU walk's (07_01) lumbar joint came out 91 mm to one side of its hips' mid-plane (a third of their
     spacing). The spine's joint moved sideways by 0.3 of the hips' spacing: said, naming the hips and the
     lumbar joint; by 0.1 of it (a lumbar joint the fit left a little to one side): not said."""
-    from mocapskel.naming import recognise
+    from mocapskel.model.naming import recognise
 
     _, res = human_fit
     motion = res.motion
@@ -327,8 +329,8 @@ def test_limbs_that_keep_a_person_shaped_tree_from_being_named_a_person_are_said
     bends on one side) or two legs of unequal length (a real stair descent's, 1087 and 1644 mm, its foot
     split in two) was written without a word. The naming's reason names the two limbs; the check says it,
     naming their first segments; a reason without limbs (a head chain of three segments) says nothing."""
-    from mocapskel import naming as naming_mod
-    from mocapskel.naming import NotPerson, recognise
+    from mocapskel.model import naming as naming_mod
+    from mocapskel.model.naming import NotPerson, recognise
 
     _, res = human_fit
     motion = res.motion
@@ -349,7 +351,7 @@ def test_limbs_that_keep_a_person_shaped_tree_from_being_named_a_person_are_said
 def test_naming_gives_the_unlike_limbs_it_stops_at(human_fit) -> None:
     """The naming's reason carries the two limbs when they alone keep the tree from a person's: the right
     leg lengthened by 700 mm below the knee (its shank's and foot's joints moved down, markers with them)."""
-    from mocapskel.naming import NotPerson, recognise
+    from mocapskel.model.naming import NotPerson, recognise
 
     _, res = human_fit
     motion = res.motion
@@ -369,7 +371,7 @@ def test_unlike_limb_bones_counts_the_like_limbs_bones_a_fifth_apart(human_fit) 
     """The rigid stage's tie-break between starts: none in the generated person's fit; two when the right
     knee is moved up by 30 % of the thigh (its markers kept: the thigh shorter, the shank longer by as much),
     which the check says too."""
-    from mocapskel.naming import recognise
+    from mocapskel.model.naming import recognise
     from mocapskel.stages.rigid import unlike_limb_bones
 
     _, res = human_fit

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mocapskel import artifacts
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import read_bvh
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import read_markers, write_markers
 from mocapskel.synth.presets import Recipe, make
+from mocapskel.io import artifact_files
 
 
 def run(*args):
@@ -76,11 +76,11 @@ def test_stage_commands_chain_and_export(takes, tmp_path):
     d, link, _ = takes
     code, _, err = run("segment", d / "link.trc", "-o", tmp_path / "seg.npz", "--no-cache")
     assert code == 0, err
-    seg = artifacts.load(tmp_path / "seg.npz")
+    seg = artifact_files.load(tmp_path / "seg.npz")
     assert seg.kind == "segments" and seg.n_segments == 3
     code, _, err = run("ik", tmp_path / "seg.npz", "-o", tmp_path / "ik.npz", "--no-cache")
     assert code == 0, err
-    assert artifacts.load(tmp_path / "ik.npz").kind == "motion"
+    assert artifact_files.load(tmp_path / "ik.npz").kind == "motion"
     code, _, err = run("export", tmp_path / "ik.npz", "-o", tmp_path / "x.bvh", "--up", "z", "--units", "mm", "--no-cache")
     assert code == 0, err
     _, root_pos, _, _ = read_bvh(tmp_path / "x.bvh")

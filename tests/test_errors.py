@@ -25,7 +25,7 @@ from click.testing import CliRunner, Result
 
 from mocapskel.artifacts import Markers
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import read_bvh
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import write_markers
 from mocapskel.synth.presets import Recipe, make
 

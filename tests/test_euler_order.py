@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from mocapskel import pipeline
-from mocapskel.io.bvh import BvhSkeleton, choose_rotation_order, gimbal_margin, read_bvh, write_bvh
+from mocapskel.solvers.bvh_pose import BvhSkeleton, choose_rotation_order, gimbal_margin
+from mocapskel.io.bvh_read import read_bvh
+from mocapskel.io.bvh import write_bvh
 from mocapskel.solvers.rotations import ORDERS, euler_to_matrix, matrix_to_euler, rotvec_to_matrix
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"

@@ -30,6 +30,7 @@ from mocapskel.io.markers import write_markers
 from mocapskel.synth.presets import Recipe, make
 
 from test_io_c3d import raw_c3d
+from mocapskel.io import artifact_files
 
 SCALE = max(1, int(os.environ.get("MOCAPSKEL_HYPOTHESIS_SCALE", "1")))
 FUZZ = settings(max_examples=15 * SCALE, deadline=None, database=None,
@@ -179,7 +180,7 @@ def generated_arrays(draw) -> np.ndarray:
 def test_artifact_with_generated_arrays(genuine: dict[str, Path], data) -> None:
     """Some of a genuine motion artifact's arrays replaced by generated arrays (any dtype, shape, value), removed,
     or kept with their shape and generated values: inspect and export end cleanly."""
-    arrs = artifacts.read_arrays(genuine["motion"])
+    arrs = artifact_files.read_arrays(genuine["motion"])
     keys = sorted(arrs)
     for key in data.draw(st.lists(st.sampled_from(keys), min_size=1, max_size=3, unique=True), label="keys"):
         how = data.draw(st.sampled_from(["replace", "remove", "same shape"]), label=f"how {key}")
@@ -201,7 +202,7 @@ def test_artifact_with_generated_arrays(genuine: dict[str, Path], data) -> None:
                                                  "skeleton/joints/topology/segments/info__json__",
                                                  "skeleton/joints/info__json__"]))
 def test_artifact_with_generated_info(genuine: dict[str, Path], info, where: str) -> None:
-    arrs = artifacts.read_arrays(genuine["motion"])
+    arrs = artifact_files.read_arrays(genuine["motion"])
     arrs[where] = np.array(json.dumps(info))
     f = TMP / "info.npz"
     f.write_bytes(artifacts.arrays_bytes(arrs))

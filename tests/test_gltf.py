@@ -78,7 +78,7 @@ def _gltf_joint_positions(path: Path) -> tuple[list[str], np.ndarray, np.ndarray
 @pytest.mark.parametrize("suffix", [".glb", ".gltf"])
 @pytest.mark.parametrize("rest", ["frame", "tpose"])
 def test_gltf_reads_back_with_pygltflib_and_holds_the_fitted_motion(fitted, tmp_path: Path, suffix: str, rest: str) -> None:
-    from mocapskel.io.bvh import lab_to_bvh
+    from mocapskel.solvers.bvh_pose import lab_to_bvh
     from mocapskel.io.gltf import write_gltf
 
     b = export.run(fitted.motion, export.Params(rest=rest))

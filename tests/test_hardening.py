@@ -25,7 +25,8 @@ from mocapskel import artifacts
 from mocapskel.artifacts import Markers
 from mocapskel.cache import Cache, digest
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import read_bvh
+from mocapskel.io import artifact_files
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import read_markers, write_markers
 from mocapskel.synth.presets import Recipe, make
 
@@ -170,7 +171,7 @@ def test_uncut_long_c3d_with_a_saturated_count_still_reads_whole(tmp_path: Path)
 
 def _craft(src: Path, dst: Path, **changes) -> Path:
     """A copy of an artifact with some arrays replaced (None: removed)."""
-    data = artifacts.read_arrays(src)
+    data = artifact_files.read_arrays(src)
     for k, v in changes.items():
         k = k.replace("__S__", "/")
         if v is None:
@@ -232,7 +233,7 @@ def test_genuine_artifacts_of_every_stage_still_load(tmp_path: Path, link_trc: P
     for s in STAGES:
         r = invoke(s, link_trc, "-o", tmp_path / f"{s}.npz", "--no-cache", "-q")
         assert r.exit_code == 0, r.stderr
-        obj = artifacts.load(tmp_path / f"{s}.npz")
+        obj = artifact_files.load(tmp_path / f"{s}.npz")
         assert obj.kind == ("markers" if s in ("clean", "merge-ids") else artifacts.ARTIFACT_TYPES[obj.kind].kind)
         r = invoke("inspect", tmp_path / f"{s}.npz")
         assert r.exit_code == 0, r.stderr
@@ -398,7 +399,7 @@ def test_cache_recovers_from_damaged_entries(tmp_path: Path, link_trc: Path, dam
                 i = int(rng.integers(len(b) // 4, len(b) // 2))
                 b[i] ^= 1 << int(rng.integers(8))
             else:  # a valid archive whose stored key is another entry's
-                data = artifacts.read_arrays(e)
+                data = artifact_files.read_arrays(e)
                 data["__cache_key__"] = np.array("0" * 64)
                 b = artifacts.arrays_bytes(data)
             e.write_bytes(bytes(b))
@@ -415,7 +416,7 @@ def test_cache_entry_that_refers_to_itself_is_discarded_not_followed(tmp_path: P
     """An entry whose key and checksum are right but whose upstream reference names itself (or a loop of
     entries): the chain is followed in a loop that notices the repeat, never by recursion."""
     c = Cache(tmp_path / "cache")
-    obj = artifacts.load(motion_npz)
+    obj = artifact_files.load(motion_npz)
     for k1, k2 in (("a" * 64, "a" * 64), ("b" * 64, "c" * 64)):
         for key, ref in ((k1, k2), (k2, k1)):
             data = artifacts.to_arrays(obj, refs={id(obj.skeleton): ref})

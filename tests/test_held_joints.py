@@ -57,7 +57,7 @@ def test_a_joint_free_along_its_axis_is_held_near_its_markers(seed: int) -> None
     # the base's joint on the first axis (the lab's frame: the base stands still), to the noise; the held
     # joint, which stands for the two with no markers between them, between those two axes and among
     # the markers' heights
-    from mocapskel.kinematics import segment_origins
+    from mocapskel.model.kinematics import segment_origins
 
     skel = res.motion.skeleton
     pos = segment_origins(res.motion)

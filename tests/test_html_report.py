@@ -27,6 +27,7 @@ from mocapskel.html_report.plots import MAX_PLOT_SAMPLES, _reduce  # noqa: E402
 from mocapskel.html_report.viewer import _json_for_script, viewer_data  # noqa: E402
 from mocapskel.io.markers import write_markers  # noqa: E402
 from mocapskel.synth.presets import Recipe, make  # noqa: E402
+from mocapskel.io import artifact_files
 
 SECTIONS = ("summary", "warnings", "view", "segments", "topology", "joint-residual", "ik-residual", "bones")
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -44,7 +45,7 @@ def human(tmp_path_factory):
     take = make(Recipe(kind="human", frames=600, noise_mm=1.0, soft_tissue_mm=1.0, gaps_per_marker_per_minute=4, seed=5))
     write_markers(d / "human.c3d", take.markers)
     res = pipeline.fit(d / "human.c3d", pipeline.make_params(), cache=Cache(d / "cache"))
-    artifacts.save(res.motion, d / "human_ik.npz")
+    artifact_files.save(res.motion, d / "human_ik.npz")
     return d, res
 
 

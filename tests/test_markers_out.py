@@ -72,7 +72,7 @@ def test_markers_out_keeps_qualisys_analogs_force_plates_events_bit_for_bit(tmp_
     assert a["data"]["analogs"].shape[1] == 69
     assert len(a["data"]["platform"]) == 2
     assert len(a["parameters"]["EVENT"]["LABELS"]["value"]) == 7
-    from mocapskel.io.bvh import read_bvh
+    from mocapskel.io.bvh_read import read_bvh
 
     skel = read_bvh(tmp_path / "q.bvh")[0]
     assert len(added) == skel.n_joints - 1  # one joint centre per joint of the tree

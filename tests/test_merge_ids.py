@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mocapskel import artifacts, evaluate, pipeline
+from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Markers, markers_of
 from mocapskel.cli.main import cli
 from mocapskel.io.markers import read_markers, write_markers
@@ -16,6 +16,7 @@ from mocapskel.stages import clean, merge_ids
 from mocapskel.synth import corrupt
 from mocapskel.synth.presets import Recipe, active_rom, make, passive_rom
 from mocapskel.synth.truth import SynthTake
+from mocapskel.io import artifact_files
 
 FRAMES = 2400  # 20 s at 120 Hz
 
@@ -268,7 +269,7 @@ def test_merge_ids_command_writes_artifact_and_merged_c3d(tmp_path):
     r = CliRunner().invoke(cli, ["merge-ids", str(tmp_path / "take.c3d"), "-o", str(tmp_path / "m.npz"),
                                  "--write-c3d", str(tmp_path / "merged.c3d"), "--no-cache"])
     assert r.exit_code == 0, r.stderr
-    art = artifacts.load(tmp_path / "m.npz")
+    art = artifact_files.load(tmp_path / "m.npz")
     assert art.kind == "markers" and art.stage == "merge-ids"
     back = read_markers(tmp_path / "merged.c3d")
     assert back.labels == art.labels

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from mocapskel import pipeline
-from mocapskel.io.bvh import bvh_to_lab, forward_kinematics, read_bvh, write_bvh
-from mocapskel.naming import name_skeleton
+from mocapskel.solvers.bvh_pose import bvh_to_lab, forward_kinematics
+from mocapskel.io.bvh_read import read_bvh
+from mocapskel.io.bvh import write_bvh
+from mocapskel.model.naming import name_skeleton
 from mocapskel.stages import export
 from mocapskel.synth.body import HUMANOID_NAMES, LABEL_CODES, PARENT, SEGMENTS
 from mocapskel.synth.presets import Recipe, make
@@ -148,7 +150,7 @@ def test_tpose_has_limbs_along_the_axes_and_a_visible_hips_bone(fitted) -> None:
 
 def _rerooted(motion, new_root: int):
     """The same fitted motion with its tree rooted at ``new_root`` (a child's origin is its joint with the parent)."""
-    from mocapskel.kinematics import segment_origins
+    from mocapskel.model.kinematics import segment_origins
 
     sk = motion.skeleton
     parent = export.tree_from(np.asarray(sk.parent), new_root)

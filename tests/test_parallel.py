@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from mocapskel import parallel
-from mocapskel.parallel import Shares, n_threads, run_blocks, run_forked
+from mocapskel.solvers import parallel
+from mocapskel.solvers.parallel import Shares, n_threads, run_blocks, run_forked
 
 PARENT = os.getpid()
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="run_forked forks on Linux only")

@@ -22,7 +22,7 @@ import pytest
 from click.testing import CliRunner
 
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import read_bvh
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import read_markers
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mocapskel import evaluate, pipeline
-from mocapskel.io.bvh import bvh_to_lab, write_bvh
+from mocapskel.solvers.bvh_pose import bvh_to_lab
+from mocapskel.io.bvh import write_bvh
 from mocapskel.synth.truth import Truth
 
 from pathlib import Path

@@ -19,7 +19,8 @@ from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Markers
 from mocapskel.cache import Cache
 from mocapskel.cli.main import cli
-from mocapskel.io.bvh import forward_kinematics, read_bvh
+from mocapskel.solvers.bvh_pose import forward_kinematics
+from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import read_markers, write_markers
 from mocapskel.subjects import split_subjects
 from mocapskel.synth.presets import Recipe, make

@@ -38,7 +38,7 @@ def write_markers_out(path, motion, input_path, read, bvh=None, labels=None) -> 
     from dataclasses import replace
 
     from ..io.markers import write_markers
-    from ..kinematics import joint_points, with_joint_markers
+    from ..model.joint_markers import joint_points, with_joint_markers
 
     naming = bvh.naming if bvh is not None else None
     if str(path).lower().endswith(".c3d") and str(input_path).lower().endswith(".c3d"):

@@ -8,6 +8,7 @@ import numpy as np
 from .. import artifacts
 from .main import cli
 from .options import common, read_options
+from ..io import artifact_files
 
 
 def describe_markers(m: artifacts.Markers) -> list[str]:
@@ -54,7 +55,7 @@ def describe_artifact(obj) -> list[str]:
 
 
 def describe_bvh(path: str) -> list[str]:
-    from ..io.bvh import read_bvh
+    from ..io.bvh_read import read_bvh
 
     skel, root_pos, local_rot, frame_time = read_bvh(path)
     lines = [
@@ -82,7 +83,7 @@ def inspect_cmd(file, exclude, include):
     p = require_regular_file(file, "a .c3d, .trc, .npz or .bvh file")
     suf = p.suffix.lower()
     if suf == ".npz":
-        lines = describe_artifact(artifacts.load(p))
+        lines = describe_artifact(artifact_files.load(p))
     elif suf == ".bvh":
         lines = describe_bvh(file)
     else:

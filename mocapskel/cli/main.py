@@ -16,7 +16,7 @@ import traceback
 
 import click
 
-from .. import parallel
+from ..solvers import parallel
 from ..errors import MocapskelError, interrupt_behind
 
 log = logging.getLogger("mocapskel")

@@ -5,12 +5,13 @@ import logging
 
 import click
 
-from .. import artifacts, pipeline
+from .. import pipeline
 from ..io.atomic import AtomicOutputs
 from ..io.markers import write_markers
 from ..stages import export
 from .main import cli
 from .options import naming_options, bvh_options, cache_options, check_output, common, fit_options, make_cache, make_read, read_options
+from ..io import artifact_files
 
 log = logging.getLogger("mocapskel")
 
@@ -39,7 +40,7 @@ def _make(stage: str):
         params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
         run = pipeline.run_until(input, stage, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
         with AtomicOutputs() as out:  # the artifact and the C3D appear together, or neither does
-            artifacts.save(run.artifact, out.stage(output))
+            artifact_files.save(run.artifact, out.stage(output))
             if write_c3d is not None:
                 write_markers(out.stage(write_c3d), run.artifact)
         log.info("wrote %s (%s artifact)", output, run.artifact.kind)

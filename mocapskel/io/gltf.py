@@ -26,7 +26,7 @@ import os
 import numpy as np
 
 from .atomic import atomic_path
-from .bvh import BvhSkeleton, bvh_rot_to_lab, bvh_to_lab, lab_rot_to_bvh, lab_to_bvh
+from ..solvers.bvh_pose import BvhSkeleton, bvh_rot_to_lab, bvh_to_lab, lab_rot_to_bvh, lab_to_bvh
 
 __all__ = ["write_gltf", "to_gltf_frame"]
 

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..io.bvh import BvhSkeleton, choose_rotation_order, depth_first_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
-from ..naming import SCHEMES, Naming, name_skeleton
+from ..solvers.bvh_pose import BvhSkeleton, choose_rotation_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..model.tree import depth_first_order
+from ..model.naming import SCHEMES, Naming, name_skeleton
 from ..solvers.rotations import rotation_between
 
 VERSION = 4
@@ -208,7 +209,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     rot = motion.rot
     root = naming.root
     # the root joint's world position: a point fixed in the root segment
-    from ..kinematics import segment_origins
+    from ..model.kinematics import segment_origins
 
     if np.array_equal(parent, old_parent) and np.allclose(r[root], sk.origin[root]):
         root_world = motion.root_pos
@@ -257,7 +258,7 @@ def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
     a humanoid root is the midpoint of the two hip joints. Independent of the
     BVH's offsets and rotations: what a reader of the file should find.
     """
-    from ..kinematics import segment_origins
+    from ..model.kinematics import segment_origins
 
     O = segment_origins(motion)
     old = np.asarray(motion.skeleton.parent)

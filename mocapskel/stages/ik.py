@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion, Skeleton, markers_of
-from ..checks import frames_text
+from ..model.measures import frames_text
 from ..errors import DataError
 from ..solvers.calibrate import track
 from ..solvers.ik_segment_poses import segment_poses

@@ -25,7 +25,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
-__all__ = ["Shares", "WorkerLost", "defer_signal", "forking", "n_threads", "one_blas_thread", "run_blocks",
+__all__ = ["Shares", "WorkerLost", "defer_signal", "forking", "n_threads", "run_blocks",
            "run_forked"]
 
 T = TypeVar("T")
@@ -50,28 +50,6 @@ def n_threads() -> int:
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
     return max(1, min(cores, 4))
-
-
-def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
-    """``fn`` with the BLAS libraries on one thread each while it runs (the package sets the same
-    through their variables, which act only where numpy was imported after it), unless the user set
-    ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or ``MKL_NUM_THREADS``. With BLAS threads of their
-    own, the forked workers and threads of :func:`run_forked`, :class:`Shares` and :func:`run_blocks`
-    spin against each other: a fit took twice as long."""
-    import functools
-
-    import mocapskel
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        if mocapskel.BLAS_THREADS_CHOSEN:
-            return fn(*args, **kwargs)
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
-
-    return wrapper
 
 
 def run_blocks(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:

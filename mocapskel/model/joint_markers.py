@@ -1,39 +1,31 @@
-"""Forward kinematics of a solved Motion, and the virtual joint markers."""
+"""Virtual joint markers: a solved skeleton's joint centres as named points, to write beside the markers."""
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
 
-from .artifacts import Markers, Motion
-from .io.bvh import depth_first_order
+from ..artifacts import Markers, Motion
+from .kinematics import segment_origins
+from .naming import generic
 
-
-def segment_origins(motion: Motion) -> np.ndarray:
-    """(F, S, 3) lab position (mm) of every segment origin; a child's origin is its joint with the parent."""
-    sk = motion.skeleton
-    F, S = motion.rot.shape[:2]
-    pos = np.full((F, S, 3), np.nan)
-    off = sk.offset
-    for s in depth_first_order(sk.parent):  # parents before children
-        p = sk.parent[s]
-        if p < 0:
-            pos[:, s] = motion.root_pos
-        else:
-            pos[:, s] = pos[:, p] + np.einsum("fij,j->fi", motion.rot[:, p], off[s])
-    return pos
+_METHOD_TEXT = {
+    "score": "SCoRE (functional, linear least squares)",
+    "score-hinge": "SCoRE on a hinge-like joint (centre on its axis)",
+    "sphere": "a sphere fit (Knight's unbiased MGDK)",
+    "jmv": "joint-marker-variance optimisation (Hang 2015)",
+    "mtb": "marker-trajectory bases (Hang 2015)",
+}
 
 
 def joint_marker_names(motion: Motion, naming=None) -> list[str]:
     """Names of the virtual joint markers, one per joint (non-root segment, in segment order).
 
     ``<parent>_<child>_JC`` after the segments it joins, or after the joint
-    for a skeleton named as a person (``LeftKnee_JC``; see :mod:`mocapskel.naming`).
+    for a skeleton named as a person (``LeftKnee_JC``; see :mod:`mocapskel.model.naming`).
     """
     sk = motion.skeleton
     if naming is None:
-        from .naming import generic
-
         naming = generic(sk)
     return [f"{naming.joint_names[s]}_JC" for s in range(len(sk.names)) if sk.parent[s] >= 0]
 
@@ -64,15 +56,6 @@ def joint_points(motion: Motion, naming=None) -> tuple[list[str], list[str], np.
             + (f"found by {_METHOD_TEXT.get(how, how)}" if how else "from the subject's skeleton")
         )
     return labels, desc, segment_origins(motion)[:, kids]
-
-
-_METHOD_TEXT = {
-    "score": "SCoRE (functional, linear least squares)",
-    "score-hinge": "SCoRE on a hinge-like joint (centre on its axis)",
-    "sphere": "a sphere fit (Knight's unbiased MGDK)",
-    "jmv": "joint-marker-variance optimisation (Hang 2015)",
-    "mtb": "marker-trajectory bases (Hang 2015)",
-}
 
 
 def with_joint_markers(markers: Markers, motion: Motion, naming=None) -> Markers:

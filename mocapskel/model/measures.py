@@ -1,0 +1,32 @@
+"""Small measures and words the stages and the checks share: the subject's size, frames as runs."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def frames_text(frames: tuple[int, ...] | np.ndarray, most: int = 8) -> str:
+    """Frames as runs, e.g. ``"12-14, 30 (+5 more runs)"``; ``""`` for none."""
+    f = np.unique(np.asarray(frames, dtype=np.int64))
+    if f.size == 0:
+        return ""
+    brk = np.flatnonzero(np.diff(f) > 1)
+    starts = np.r_[f[0], f[brk + 1]]
+    ends = np.r_[f[brk], f[-1]]
+    parts = [str(a) if a == b else f"{a}-{b}" for a, b in zip(starts[:most].tolist(), ends[:most].tolist())]
+    more = starts.size - most
+    return ", ".join(parts) + (f" (+{more} more runs)" if more > 0 else "")
+
+
+def marker_extent(points: np.ndarray, n_frames: int = 400) -> float:
+    """The subject's size: median over (up to ``n_frames`` evenly spread) frames of the
+    largest distance between two markers seen in that frame (mm; NaN if no frame shows two)."""
+    F = points.shape[0]
+    idx = np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
+    d = []
+    for f in idx:  # a few hundred frames, each a small pairwise matrix
+        p = points[f]
+        p = p[np.isfinite(p).all(1)]
+        if p.shape[0] >= 2:
+            diff = p[:, None, :] - p[None, :, :]
+            d.append(float(np.sqrt((diff * diff).sum(-1)).max()))
+    return float(np.median(d)) if d else float("nan")
