@@ -87,6 +87,11 @@ def test_the_walk_sees_the_package() -> None:
     assert any(m.startswith("mocapskel.stages.") for m in GRAPH["mocapskel.pipeline"])
 
 
+def test_every_import_of_the_package_names_one_of_its_modules() -> None:
+    missing = [f"{m} -> {d}" for m, deps in GRAPH.items() for d in sorted(deps) if not _is_module(d)]
+    assert not missing, missing
+
+
 def test_each_part_imports_only_what_it_may() -> None:
     broken = []
     for mod, deps in GRAPH.items():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mocapskel import pipeline
-from mocapskel.naming import name_skeleton
+from mocapskel.model.naming import name_skeleton
 from mocapskel.solvers import grouping
 from mocapskel.solvers.partition import scatter_in_frame
 from mocapskel.stages import rigid, segment

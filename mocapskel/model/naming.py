@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io.bvh import sanitize_names
+from .tree import sanitize_names
 
 __all__ = ["Naming", "NotPerson", "name_skeleton", "segment_names", "SCHEMES", "JOINT_OF"]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..parallel import run_blocks
+from .parallel import run_blocks
 from .ik_planes import _c_dot, _c_mv, _c_quat_to_mat, _recycle_large_blocks
 from .rigid import _adj4, kabsch
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..parallel import run_blocks
+from .parallel import run_blocks
 from .ik_model import _Model, _Tree
 from .ik_planes import (
     _c_dot,

@@ -33,10 +33,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..artifacts import Joints, Topology
-from ..checks import marker_extent
+from ..model.measures import marker_extent
 from ..errors import DataError
-from ..naming import segment_names
-from ..parallel import run_blocks, run_forked
+from ..model.naming import segment_names
+from ..solvers.parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
 from ..solvers.jmv import jmv_joint_long
 from ..solvers.joint_centres import (

@@ -15,9 +15,9 @@ import numpy as np
 
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
-from ..io.bvh import depth_first_order
-from ..naming import segment_names
-from ..parallel import run_forked
+from ..model.tree import depth_first_order
+from ..model.naming import segment_names
+from ..solvers.parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
 from ..solvers.ik_solve import solve_ik
 from ..solvers.rigid import beyond_hull, procrustes_shape
@@ -380,7 +380,7 @@ def unlike_limb_bones(skel: Skeleton, tol: float = 0.2) -> int:
     """How many bones of like limbs (two children of one segment that are chains of as many segments, two or
     more: two legs, two arms) differ by more than ``tol`` of the shorter, compared segment for segment down the
     chains (the ``limb_asymmetry`` check's rule, on the tree's shape alone)."""
-    from ..checks import like_limb_pairs, unlike_bones
+    from ..model.tree import like_limb_pairs, unlike_bones
 
     return len(unlike_bones(skel, [(a, b) for a, b, _ in like_limb_pairs(np.asarray(skel.parent))], tol))
 

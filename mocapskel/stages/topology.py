@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Segments, Topology
-from ..checks import marker_extent
+from ..model.measures import marker_extent
 from ..errors import DataError
-from ..parallel import n_threads, run_forked
+from ..solvers.parallel import n_threads, run_forked
 from ..solvers.joint_cost import balanced_alpha, distance_penalty
 from ..solvers.mtb import mtb_basis
 from ..solvers.pair_cost import pair_cost
