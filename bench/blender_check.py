@@ -9,7 +9,7 @@ that DESIGN promises Blender handles (``--up y --units cm``, the default, and
 ``--up z --units mm``) with ``mocapskel.io.bvh.write_bvh``, imports each file
 with Blender's own BVH importer in a background Blender, and compares every
 pose bone's head in Blender's world (``armature.matrix_world @ pbone.head``)
-with ``mocapskel.kinematics.segment_origins`` (lab frame, mm), bone by bone by
+with ``mocapskel.model.kinematics.segment_origins`` (lab frame, mm), bone by bone by
 name. It also compares the leaves' tails with our End Sites, reports the
 error of the file alone (our own float64 reader and forward kinematics of the
 same file: its rounding), and checks the frame count and the frame rate

@@ -28,7 +28,7 @@ the result against the take itself, with no template:
                     segments moves less than a tenth of its segment's extent
                     (two equivalent solutions swapped, not a fast turn);
 - ``limb_asymmetry`` in a skeleton recognised as a person (see
-                    :mod:`mocapskel.naming`), the same bone of the left and the
+                    :mod:`mocapskel.model.naming`), the same bone of the left and the
                     right limb (thigh, shank, foot, upper arm, forearm, shoulder)
                     longer on one side by more than a fifth: people's left and
                     right long bones differ by a few per cent, so one side has a
@@ -239,7 +239,7 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
 
     from .model.naming import recognise
 
-    naming = recognise(sk, motion)  # a person's, or why not (see mocapskel.naming)
+    naming = recognise(sk, motion)  # a person's, or why not (see mocapskel.model.naming)
     out.extend(_limb_asymmetry(motion, limits.asymmetry, naming))
     out.extend(_limb_mirror(motion, limits.mirror, naming))
 

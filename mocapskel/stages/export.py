@@ -9,7 +9,7 @@ standard direction, the motion re-expressed so that every joint's world
 position is unchanged); the root's OFFSET is zero and its position channels
 are absolute, which every BVH reader agrees on.
 
-Names (:mod:`mocapskel.naming`): with ``names="auto"`` (the default) a
+Names (:mod:`mocapskel.model.naming`): with ``names="auto"`` (the default) a
 skeleton recognised as a person gets the humanoid names and is rooted at the
 pelvis (``Hips``, between the hip joints, so that the bone to the spine is
 visible); ``names="segments"`` keeps the segment names and the fitted root.
@@ -43,7 +43,7 @@ class Params:
     order: str = "auto"
     """Rotation channel order of every joint; "auto": ZXY unless some joint comes within
     30 degrees of gimbal lock in it, then the order that keeps joints farthest from lock
-    (:func:`~mocapskel.io.bvh.choose_rotation_order`)."""
+    (:func:`~mocapskel.solvers.bvh_pose.choose_rotation_order`)."""
     names: str = "auto"
     rest: str = "frame"
 
@@ -254,7 +254,7 @@ def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
     """(F, S, 3) where each BVH joint of ``bvh`` should be (lab, mm), from ``motion`` alone.
 
     A joint is the fitted tree's joint between its segment and its parent's
-    (:func:`mocapskel.kinematics.segment_origins` of the child of that edge);
+    (:func:`mocapskel.model.kinematics.segment_origins` of the child of that edge);
     a humanoid root is the midpoint of the two hip joints. Independent of the
     BVH's offsets and rotations: what a reader of the file should find.
     """

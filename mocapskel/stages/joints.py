@@ -414,7 +414,7 @@ def stray_leaves(joints: Joints, far: float, frames: int = 400) -> list[tuple[in
       marker, ``STRAY_RESIDUAL`` times for more): no point keeps its place in both bodies as a joint does;
     - the joint's median distance over the frames from the leaf's markers and from every marker of its
       neighbour exceeds ``far`` times the subject's marker extent without the leaf (the output checks'
-      :func:`~mocapskel.checks.marker_extent` of the other markers, the bar of ``joint_far``);
+      :func:`~mocapskel.model.measures.marker_extent` of the other markers, the bar of ``joint_far``);
     - it moves: a marker or object that stands still (a robot's base on its table) is the lab's own
       frame, not a stray.
     On 440 generated random trees of three to five links of 300 mm with one-marker leaves (a subject barely
