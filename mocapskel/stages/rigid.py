@@ -19,8 +19,9 @@ from ..errors import DataError
 from ..io.bvh import depth_first_order, sanitize_names
 from ..parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
+from ..solvers.hull import beyond_hull
 from ..solvers.ik import solve_ik
-from ..solvers.rigid import beyond_hull, procrustes_shape
+from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between, segments_seen
 
 VERSION = 23
