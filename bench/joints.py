@@ -27,9 +27,10 @@ from bench.common import table
 from mocapskel.solvers.hybrid import solve_tree
 from mocapskel.solvers.jmv import jmv_joint
 from mocapskel.solvers.mtb import mtb_basis, mtb_joint
-from mocapskel.solvers.rigid import shape_poses
+from mocapskel.solvers.rigid_shape import shape_poses
 from mocapskel.solvers.score import score_from_markers
-from mocapskel.solvers.sphere import gdke, mgdk, sphere_crlb, sphere_lls, sphere_mle, ugdk
+from mocapskel.solvers.sphere import gdke, mgdk, sphere_lls, ugdk
+from mocapskel.solvers.sphere_mle import sphere_crlb, sphere_mle
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
 QUICK = False

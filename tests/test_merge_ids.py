@@ -11,7 +11,9 @@ from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Markers, markers_of
 from mocapskel.cli.main import cli
 from mocapskel.io.markers import read_markers, write_markers
-from mocapskel.solvers import merge as mg
+from mocapskel.solvers.merge_cluster import repulsion_spectral, time_gaps
+from mocapskel.solvers.merge_links import link_tracks
+from mocapskel.solvers.merge_pairs import compact_visible, pair_sums, partners_of
 from mocapskel.stages import clean, merge_ids
 from mocapskel.synth import corrupt
 from mocapskel.synth.presets import Recipe, active_rom, make, passive_rom
@@ -294,10 +296,10 @@ def test_pair_sums_keep_a_rigid_pair_rigid_despite_a_jump():
     pts = np.stack([a, b, c], 1) + rng.normal(0, 0.5, (F, 3, 3))
     pts[300:305, 1] += 80.0  # a jump
     vis = np.isfinite(pts).all(-1)
-    mean, std = mg.pair_sums(pts, vis).stats()
+    mean, std = pair_sums(pts, vis).stats()
     assert mean[0, 1] == pytest.approx(50.0, abs=0.5) and std[0, 1] < 1.5
     assert std[0, 2] > 20
-    partner = mg.partners_of(mean, std, mg.pair_sums(pts, vis).n, 3.0, 10)
+    partner = partners_of(mean, std, pair_sums(pts, vis).n, 3.0, 10)
     assert partner[0, 1] and not partner[0, 2]
 
 
@@ -314,12 +316,12 @@ def test_link_tracks_joins_the_end_to_the_start_its_partners_predict():
         partner[i, j] = partner[j, i] = True
     overlap = np.ones((5, 5), dtype=int)
     overlap[2, 3:] = overlap[3:, 2] = 0
-    lk = mg.link_tracks(first, last, p, p, mean, partner, overlap, n_frames=200, max_gap=50)
+    lk = link_tracks(first, last, p, p, mean, partner, overlap, n_frames=200, max_gap=50)
     assert lk.pairs.tolist() == [[2, 3]]
     # the rival start that fits nearly as well is refused: no clear best
     mean[0, 4] = mean[4, 0] = 50.5
     mean[1, 4] = mean[4, 1] = 60.2
-    lk = mg.link_tracks(first, last, p, p, mean, partner, overlap, n_frames=200, max_gap=50)
+    lk = link_tracks(first, last, p, p, mean, partner, overlap, n_frames=200, max_gap=50)
     assert lk.pairs.size == 0 and lk.ambiguous == 1
 
 
@@ -330,7 +332,7 @@ def test_repulsion_keeps_items_seen_together_apart():
         A[i, j] = A[j, i] = w
     R = np.zeros((4, 4))
     R[1, 2] = R[2, 1] = 1.0
-    lab = mg.repulsion_spectral(A, R, 2, rng=np.random.default_rng(0))
+    lab = repulsion_spectral(A, R, 2, rng=np.random.default_rng(0))
     assert lab[0] == lab[1] and lab[2] == lab[3] and lab[1] != lab[2]
 
 
@@ -339,8 +341,8 @@ def test_time_gaps_and_compact_table():
     vis[0:3, 0] = True
     vis[6:10, 1] = True
     vis[2:5, 2] = True
-    g = mg.time_gaps(vis)
+    g = time_gaps(vis)
     assert g[0, 1] == 4 and g[0, 2] == 0 and g[1, 2] == 2
-    idx = mg.compact_visible(vis)
+    idx = compact_visible(vis)
     assert idx.shape == (10, 2)
     assert idx[2].tolist() == [0, 2] and idx[5].tolist() == [-1, -1]

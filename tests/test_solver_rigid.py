@@ -7,8 +7,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers import rigid
-from mocapskel.solvers.rigid import kabsch, procrustes_shape
+from mocapskel.solvers import rigid, rigid_shape
+from mocapskel.solvers.rigid import kabsch
+from mocapskel.solvers.rigid_shape import procrustes_shape
 
 
 def _motion(rng: np.random.Generator, F: int) -> tuple[np.ndarray, np.ndarray]:
@@ -286,14 +287,14 @@ def _noisy_take(rng, F, shape, noise=1.5, gap=0.05):
 
 
 @pytest.mark.parametrize("P", [3, 4, 6])
-@pytest.mark.parametrize("F", [7, 300, 20_000])  # one block, and several (rigid._BLOCK frames each)
+@pytest.mark.parametrize("F", [7, 300, 20_000])  # one block, and several (rigid_shape._BLOCK frames each)
 def test_shape_poses_equals_kabsch(P, F):
     """Noise, gaps, any rotation (half turns included): kabsch's R and t to rounding, NaN in the same frames."""
     rng = np.random.default_rng(P * 100 + F)
     shape = rng.normal(0, 80, (P, 3)) + [300.0, -200, 1000]  # not centred
     _, _, obs = _noisy_take(rng, F, shape)
     R0, t0, _ = kabsch(shape, obs)
-    R1, t1 = rigid.shape_poses(shape, obs)
+    R1, t1 = rigid_shape.shape_poses(shape, obs)
     same = np.isfinite(R0[:, 0, 0])
     np.testing.assert_array_equal(np.isfinite(R1[:, 0, 0]), same)
     np.testing.assert_array_equal(np.isfinite(t1[:, 0]), same)
@@ -308,7 +309,7 @@ def test_shape_poses_noise_free_exact_and_rounding_level():
     axes = rng.normal(size=(10, 3))
     R[:10] = Rotation.from_rotvec(np.pi * axes / np.linalg.norm(axes, axis=1, keepdims=True)).as_matrix()  # half turns
     obs = _apply(R, t, shape)
-    Rh, th = rigid.shape_poses(shape, obs)
+    Rh, th = rigid_shape.shape_poses(shape, obs)
     np.testing.assert_allclose(Rh, R, rtol=0, atol=1e-12)
     np.testing.assert_allclose(th, t, rtol=0, atol=1e-9)
 
@@ -322,7 +323,7 @@ def test_shape_poses_unsolvable_frames_and_shapes():
     obs[6, 3] = np.nan  # 3 left: solvable
     obs[7, 1:3] = np.nan  # 2 left
     obs[8, [1, 3]] = np.inf  # non-finite counts as missing
-    Rh, th = rigid.shape_poses(shape, obs)
+    Rh, th = rigid_shape.shape_poses(shape, obs)
     bad = np.zeros(50, bool)
     bad[[5, 7, 8]] = True
     assert np.isnan(Rh[bad]).all() and np.isnan(th[bad]).all()
@@ -330,17 +331,17 @@ def test_shape_poses_unsolvable_frames_and_shapes():
     # a NaN row in the shape is left out, as kabsch does
     shape_nan = shape.copy()
     shape_nan[3] = np.nan
-    Rn, tn = rigid.shape_poses(shape_nan, obs)
+    Rn, tn = rigid_shape.shape_poses(shape_nan, obs)
     R0, t0, _ = kabsch(shape_nan, obs)
     np.testing.assert_array_equal(np.isnan(Rn[:, 0, 0]), np.isnan(R0[:, 0, 0]))
     np.testing.assert_allclose(Rn, R0, atol=1e-12)
     np.testing.assert_allclose(tn, t0, atol=1e-9)
     # collinear shape: no frame can be solved
     line = np.array([[0.0, 0, 0], [1, 2, 3], [2, 4, 6], [5, 10, 15]])
-    Rl, tl = rigid.shape_poses(line, _apply(R, t, line))
+    Rl, tl = rigid_shape.shape_poses(line, _apply(R, t, line))
     assert np.isnan(Rl).all() and np.isnan(tl).all()
     with pytest.raises(ValueError):
-        rigid.shape_poses(shape[:3], obs)
+        rigid_shape.shape_poses(shape[:3], obs)
 
 
 def test_shape_poses_nearly_collinear_frames_fall_back_to_the_exact_solver():
@@ -350,7 +351,7 @@ def test_shape_poses_nearly_collinear_frames_fall_back_to_the_exact_solver():
     R, t = _motion(rng, 400)
     obs = _apply(R, t, shape) + rng.normal(0, 0.05, (400, 3, 3))
     R0, t0, _ = kabsch(shape, obs)
-    R1, t1 = rigid.shape_poses(shape, obs)
+    R1, t1 = rigid_shape.shape_poses(shape, obs)
     np.testing.assert_allclose(R1, R0, atol=1e-9)
     np.testing.assert_allclose(t1, t0, atol=1e-7)
 
@@ -360,15 +361,15 @@ def test_qcp_columns_agree_with_the_eigenvector():
     rng = np.random.default_rng(6)
     H = rng.normal(0, 1, (2000, 3, 3)) + 5 * Rotation.random(2000, random_state=rng).as_matrix()
     Ht = np.ascontiguousarray(H.reshape(-1, 9).T)
-    q, lam, apart, col0 = rigid._qcp(Ht, np.linalg.svd(H, compute_uv=False).sum(1) * (1 + 1e-9))  # a tight upper bound
-    R = rigid._quat_to_matrix(q)
+    q, lam, apart, col0 = rigid_shape._qcp(Ht, np.linalg.svd(H, compute_uv=False).sum(1) * (1 + 1e-9))  # a tight upper bound
+    R = rigid_shape._quat_to_matrix(q)
     R_svd = rigid._svd_rotation(H)
     ok = apart & col0
     assert ok.mean() > 0.8
     np.testing.assert_allclose(R[ok], R_svd[ok], atol=1e-10)
     redo = np.flatnonzero(apart & ~col0)
     if redo.size:
-        np.testing.assert_allclose(rigid._redo_rotations(Ht[:, redo], lam[redo]), R_svd[redo], atol=1e-10)
+        np.testing.assert_allclose(rigid_shape._redo_rotations(Ht[:, redo], lam[redo]), R_svd[redo], atol=1e-10)
 
 
 def test_hull_planes_are_qhulls():
@@ -377,7 +378,7 @@ def test_hull_planes_are_qhulls():
     with ties and coplanar facets."""
     from scipy.spatial import ConvexHull
 
-    from mocapskel.solvers.rigid import beyond_hull, hull_planes
+    from mocapskel.solvers.hull import beyond_hull, hull_planes
 
     rng = np.random.default_rng(3)
     for i in range(400):
@@ -398,7 +399,7 @@ def test_hull_planes_are_qhulls():
 
 
 def test_hull_of_flat_or_few_points_has_no_inside():
-    from mocapskel.solvers.rigid import beyond_hull, hull_planes
+    from mocapskel.solvers.hull import beyond_hull, hull_planes
 
     rng = np.random.default_rng(4)
     flat = np.column_stack([rng.normal(size=(30, 2)) * 100.0, np.full(30, 5.0)])

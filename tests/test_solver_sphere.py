@@ -7,14 +7,13 @@ from scipy.spatial.transform import Rotation
 
 from mocapskel.solvers.sphere import (
     IGDK,
-    SphereFit,
     gdke,
     mgdk,
-    sphere_crlb,
     sphere_lls,
-    sphere_mle,
     ugdk,
 )
+from mocapskel.solvers.sphere_mle import sphere_crlb, sphere_mle
+from mocapskel.solvers.sphere_solve import SphereFit
 
 CENTRE = np.array([1200.0, -350.0, 900.0])  # lab-like coordinates, mm
 
@@ -320,13 +319,13 @@ def test_crlb_grows_as_the_cap_shrinks_and_is_infinite_on_a_circle():
 
 def test_moments_of_several_markers_at_once_equal_marker_by_marker():
     """The batched central sums (every marker seen equally often) equal the per-marker ones."""
-    from mocapskel.solvers import sphere
+    from mocapskel.solvers import sphere_moments
 
     rng = np.random.default_rng(31)
     X = rng.normal(0, 50, (3000, 4, 3)) + [1000.0, -500, 2000]
-    batch = sphere._moments([X[:, p] for p in range(4)])
+    batch = sphere_moments._moments([X[:, p] for p in range(4)])
     for p in range(4):
-        n, mean, M2, T, Q = sphere._marker_sums(X[:, p])
+        n, mean, M2, T, Q = sphere_moments._marker_sums(X[:, p])
         assert batch.n[p] == n
         np.testing.assert_allclose(batch.mean[p], mean, rtol=1e-15)
         np.testing.assert_allclose(batch.M2[p], M2, rtol=1e-12)
@@ -335,7 +334,7 @@ def test_moments_of_several_markers_at_once_equal_marker_by_marker():
     # unequal sample counts (gaps) take the per-marker path: the same sums
     Xg = X.copy()
     Xg[::7, 1] = np.nan
-    gaps = sphere._moments([Xg[:, p] for p in range(4)])
+    gaps = sphere_moments._moments([Xg[:, p] for p in range(4)])
     assert gaps.n[1] < gaps.n[0]
     np.testing.assert_allclose(gaps.M2[[0, 2, 3]], batch.M2[[0, 2, 3]], rtol=1e-12)
 
@@ -345,7 +344,7 @@ def test_brentq_gives_scipys_root_to_the_last_bit():
     on smooth functions of several kinds and tolerances, including the ones the noise estimate uses."""
     from scipy.optimize import brentq as scipy_brentq
 
-    from mocapskel.solvers.sphere import brentq
+    from mocapskel.solvers.sphere_solve import brentq
 
     rng = np.random.default_rng(7)
     checked = 0
@@ -363,7 +362,7 @@ def test_brentq_gives_scipys_root_to_the_last_bit():
 
 
 def test_brentq_refuses_what_scipy_refuses():
-    from mocapskel.solvers.sphere import brentq
+    from mocapskel.solvers.sphere_solve import brentq
 
     with pytest.raises(ValueError, match="different signs"):
         brentq(lambda x: x * x + 1.0, -1.0, 1.0, xtol=1e-12, rtol=1e-15, maxiter=100)
@@ -390,10 +389,10 @@ def test_a_fit_does_not_import_scipy_optimize(tmp_path):
     code = (
         "import sys, mocapskel\n"
         "from mocapskel import pipeline\n"
-        "from mocapskel.solvers import sphere\n"
+        "from mocapskel.solvers import sphere_solve\n"
         "calls = []\n"
-        "plain = sphere.brentq\n"
-        "sphere.brentq = lambda *a, **k: calls.append(1) or plain(*a, **k)\n"
+        "plain = sphere_solve.brentq\n"
+        "sphere_solve.brentq = lambda *a, **k: calls.append(1) or plain(*a, **k)\n"
         "res = pipeline.fit('take.c3d', pipeline.make_params(up='z', units='mm'))\n"
         "print(len(calls), res.report['refinement'].get('iterations', 0) > 0,"
         " 'scipy.optimize' in sys.modules, 'scipy.spatial' in sys.modules)\n"

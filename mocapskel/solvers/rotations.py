@@ -336,7 +336,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 def _quat_matrices(q: np.ndarray) -> np.ndarray:
     """(n, 4) quaternions, scalar first, any non-zero length -> (n, 3, 3) rotations."""
-    from .rigid import _quat_to_matrix
+    from .rigid_shape import _quat_to_matrix
 
     q = q / np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
     return _quat_to_matrix(np.ascontiguousarray(q.T))

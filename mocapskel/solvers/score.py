@@ -19,7 +19,7 @@ Given the pose ``(R_f, t_f)`` of two segments in every frame ``f`` (a point
 - :func:`score_hinge` — the hinge centre: the point on the SARA axis closest
   to the centroid of the markers of both segments.
 - :func:`score_from_markers` — per-frame poses from two marker groups by a
-  batched rigid fit (:func:`~.rigid.shape_poses`), then :func:`score`.
+  batched rigid fit (:func:`~.rigid_shape.shape_poses`), then :func:`score`.
 
 Conditioning. Divided by the total weight, the normal matrix is
 ``[[I, -M], [-M^T, I]]`` with ``M = mean_f R1_f^T R2_f``; its eigenvalues are
@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rigid import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, shape_poses
+from .rigid_shape import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, shape_poses
 
 __all__ = ["ScoreFit", "SaraFit", "score", "score_hinge", "sara", "score_from_markers"]
 
@@ -287,7 +287,7 @@ def _system(R1, t1, R2, t2, weights) -> _System:
 
 
 def _tdot(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """A.T @ B for tall A (k, m) and B (k,) or (k, n), summed over pieces of rows (see rigid._SMALL_PRODUCT)."""
+    """A.T @ B for tall A (k, m) and B (k,) or (k, n), summed over pieces of rows (see rigid_shape._SMALL_PRODUCT)."""
     rows = _SMALL_GEMV // A.shape[1] if B.ndim == 1 else _SMALL_PRODUCT // (A.shape[1] * B.shape[1])
     if A.shape[0] <= rows:
         return A.T @ B

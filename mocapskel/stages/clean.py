@@ -6,7 +6,7 @@
   a marker seen with two or more rigid partners (markers whose distance to
   it hardly varies over the take) is a jump only when it leaves those
   partners (by distance or by the abrupt change of the vectors to them,
-  :func:`~mocapskel.solvers.merge.rigid_jumps`),
+  :func:`~mocapskel.solvers.merge_jumps.rigid_jumps`),
   so that fast motion keeps its samples; a marker without two partners in
   view is judged by its path alone. Jumps are turned into gaps;
 - gap edges: a few frames at both ends of every visible run that borders a
@@ -23,7 +23,8 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
-from ..solvers.merge import norm3
+from ..solvers.merge_jumps import judged_by_partners, norm3, rigid_jumps
+from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of
 
 VERSION = 4
 
@@ -245,14 +246,11 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
     -------
     (F, M) bool ndarray
         At samples seen with two or more reliable rigid partners: the rigid
-        test's verdict (:func:`~mocapskel.solvers.merge.rigid_jumps`), and the
+        test's verdict (:func:`~mocapskel.solvers.merge_jumps.rigid_jumps`), and the
         candidates that also leave most of those partners by half its distance
         (its *soft* samples), in the blocks of frames around candidates;
         elsewhere the candidates.
     """
-    from ..solvers import merge as mg
-    from .merge_ids import _auto_rigid
-
     F, M = vis.shape
     if not candidates.any() or M < 3 or F < 5:
         return candidates.copy()
@@ -260,15 +258,15 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
     pts = points
     if not np.isfinite(points[vis]).all() or (~vis & np.isfinite(points).all(-1)).any():
         pts = np.where(vis[..., None], points, np.nan)
-    sums = mg.pair_sums(pts, vis, max_entries=_PAIR_ENTRIES)
+    sums = pair_sums(pts, vis, max_entries=_PAIR_ENTRIES)
     min_shared = max(3, int(np.ceil(0.15 * rate / sums.stride)))
     mean, std = sums.stats()
     rigid_mm = _auto_rigid(std, sums.n, min_shared)
     # partners: rigid within the take's own tolerance over 2 s or more, with at most 5 % of their
     # shared frames trimmed (a marker's own jumps take a few per cent of them)
-    reliable = mg.partners_of(mean, std, sums.n, rigid_mm, max(min_shared, int(params.partner_s * rate / sums.stride)),
-                              sums.shared, 0.05)
-    judged = mg.judged_by_partners(vis, reliable)
+    reliable = partners_of(mean, std, sums.n, rigid_mm, max(min_shared, int(params.partner_s * rate / sums.stride)),
+                           sums.shared, 0.05)
+    judged = judged_by_partners(vis, reliable)
     out = candidates & ~judged
     todo = (candidates & judged).any(axis=1)
     if not todo.any():
@@ -280,8 +278,8 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         if not todo[a:b].any():
             continue
         lo, hi = max(0, a - margin), min(F, b + margin)
-        jumps, soft = mg.rigid_jumps(pts[lo:hi], vis[lo:hi], mean, std, reliable, jump_mm=params.rigid_jump_mm,
-                                     step_mm=params.rigid_step_mm, max_len=max_len)
+        jumps, soft = rigid_jumps(pts[lo:hi], vis[lo:hi], mean, std, reliable, jump_mm=params.rigid_jump_mm,
+                                  step_mm=params.rigid_step_mm, max_len=max_len)
         # a jump: what the rigid test finds, and a candidate off its path that also leaves most of
         # its partners by half the rigid test's distance (a small jump the partners see less well)
         jumps |= soft & candidates[lo:hi]

@@ -18,7 +18,7 @@ Methods (``Params.method``):
   reaches a lower joint cost for that joint (as it does on exact data).
 
 Long takes: every segment's pose in every frame comes from one batched rigid
-fit (:func:`~mocapskel.solvers.rigid.shape_poses`), SCoRE's constant offsets
+fit (:func:`~mocapskel.solvers.rigid_shape.shape_poses`), SCoRE's constant offsets
 from sums over all frames (a spread subsample measurably changes them: 2000
 to 8000 of the 60,000 frames of an active ROM take moved its joint RMS error
 by 0.04 to 0.07 mm, 600 of 7200 frames by up to 0.3 mm), and every frame's
@@ -44,7 +44,7 @@ from ..solvers.joint_centres import (
     sphere_centre, spread_frames,
 )
 from ..solvers.joint_cost import distance_penalty, joint_cost
-from ..solvers.rigid import shape_poses
+from ..solvers.rigid_shape import shape_poses
 from ..solvers.score import group_pose, score
 
 VERSION = 21

@@ -51,7 +51,10 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
-from ..solvers import merge as mg
+from ..solvers.merge_cluster import pose_distance, repulsion_spectral, time_gaps
+from ..solvers.merge_jumps import rigid_jumps, runs_of
+from ..solvers.merge_links import common_partner_cost, link_tracks, triangle_links
+from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of, track_sums
 
 log = logging.getLogger("mocapskel")
 
@@ -133,12 +136,12 @@ class _Merger:
         self.points, self.vis = pts, vis
         self.rate = float(markers.rate) if markers.rate and markers.rate > 0 else 1.0
         self.F, self.L = vis.shape
-        self.sums = mg.pair_sums(pts, vis)
+        self.sums = pair_sums(pts, vis)
         self.min_shared = max(3, int(np.ceil(params.min_shared_s * self.rate / self.sums.stride)))
         mean, std = self.sums.stats()
         self.rigid_mm = float(params.rigid_mm) if params.rigid_mm is not None else _auto_rigid(std, self.sums.n, self.min_shared)
-        self.label_partner = mg.partners_of(mean, std, self.sums.n, self.rigid_mm, self.min_shared,
-                                            self.sums.shared, params.max_trimmed)
+        self.label_partner = partners_of(mean, std, self.sums.n, self.rigid_mm, self.min_shared,
+                                         self.sums.shared, params.max_trimmed)
         self.label_overlap = _run_overlap(vis)
         self.pose_cache: dict[tuple, float] = {}
         seen = vis.any(axis=0)
@@ -152,9 +155,9 @@ class _Merger:
 
     def state(self, track: np.ndarray, *, full: bool = True) -> _State:
         T = int(track.max()) + 1 if track.size and track.max() >= 0 else 0
-        ts = mg.track_sums(self.sums, track, T)
+        ts = track_sums(self.sums, track, T)
         mean, std = ts.stats()
-        partner = mg.partners_of(mean, std, ts.n, self.rigid_mm, self.min_shared, ts.shared, self.p.max_trimmed)
+        partner = partners_of(mean, std, ts.n, self.rigid_mm, self.min_shared, ts.shared, self.p.max_trimmed)
         ok = np.flatnonzero(track >= 0)
         t = track[ok]
         key = (t[:, None] * T + t[None, :]).ravel()
@@ -185,21 +188,10 @@ class _Merger:
         return st
 
 
-def _auto_rigid(std: np.ndarray, n: np.ndarray, min_shared: int) -> float:
-    """Twice the median, over labels, of the std of each label's most rigid partner (2–15 mm)."""
-    s = np.where((n >= min_shared) & np.isfinite(std), std, np.inf)
-    np.fill_diagonal(s, np.inf)
-    best = s.min(axis=1) if s.size else np.zeros(0)
-    best = best[np.isfinite(best)]
-    if best.size == 0:
-        return 4.0
-    return float(np.clip(2.0 * np.median(best), 2.0, 15.0))
-
-
 def _run_overlap(vis: np.ndarray) -> np.ndarray:
     """(L, L) exact number of frames two labels are both seen, from their visible runs."""
     F, L = vis.shape
-    col, start, stop = mg.runs_of(vis)
+    col, start, stop = runs_of(vis)
     out = np.zeros(L * L)
     R = col.size
     step = max(1, 4_000_000 // max(R, 1))
@@ -379,19 +371,19 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
         while rounds < p.max_rounds:
             rounds += 1
             st = mg_.state(track, full=False)
-            lk = mg.link_tracks(st.first, st.last, st.p_first, st.p_last, st.mean, st.partner, st.overlap, **link, min_common=2)
+            lk = link_tracks(st.first, st.last, st.p_first, st.p_last, st.mean, st.partner, st.overlap, **link, min_common=2)
             pairs = lk.pairs[allowed(st, lk.pairs)] if lk.pairs.size else lk.pairs
             if pairs.size:
                 track, n = _union(track, pairs, mg_.label_overlap)
                 evidence["linked"] += n
                 continue
             ambiguous = lk.ambiguous
-            lk1 = mg.link_tracks(st.first, st.last, st.p_first, st.p_last, st.mean, st.partner, st.overlap, **link, min_common=1)
+            lk1 = link_tracks(st.first, st.last, st.p_first, st.p_last, st.mean, st.partner, st.overlap, **link, min_common=1)
             prov = lk1.pairs[allowed(st, lk1.pairs)] if lk1.pairs.size else lk1.pairs
             good = _provisional(mg_, st, prov, link, allowed)
             if not good.size:  # whole rigid triangles relabelled at once
-                tri = mg.triangle_links(st.first, st.last, st.mean, st.partner, n_frames=F, max_gap=max_gap,
-                                        link_mm=p.link_mm, margin_mm=p.margin_mm)
+                tri = triangle_links(st.first, st.last, st.mean, st.partner, n_frames=F, max_gap=max_gap,
+                                     link_mm=p.link_mm, margin_mm=p.margin_mm)
                 tri = tri[allowed(st, tri)] if tri.size else tri
                 good = _provisional(mg_, st, tri, link, allowed)
             if not good.size:
@@ -417,7 +409,7 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     cand = ((P @ P) > 0) & (st.overlap == 0) & short[:, None]
     np.fill_diagonal(cand, False)
     ci, cj = np.nonzero(cand)
-    cost, _ = mg.common_partner_cost(st.mean, st.partner, ci, cj)
+    cost, _ = common_partner_cost(st.mean, st.partner, ci, cj)
     could_be = np.zeros(st.n_tracks, dtype=bool)
     could_be[ci[cost <= 2 * p.link_mm]] = True
     spread = np.zeros(st.n_tracks)
@@ -436,11 +428,11 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
 
     # 4. outliers on the merged markers
     st = mg_.state(track)
-    reliable = mg.partners_of(st.mean, st.std, st.n, mg_.rigid_mm,
-                              max(mg_.min_shared, int(p.reliable_s * rate / mg_.sums.stride)), st.shared, 0.02)
+    reliable = partners_of(st.mean, st.std, st.n, mg_.rigid_mm,
+                           max(mg_.min_shared, int(p.reliable_s * rate / mg_.sums.stride)), st.shared, 0.02)
     max_len = max(1, int(round(p.max_jump_s * rate)))
-    jumps, soft = mg.rigid_jumps(st.points, st.vis, st.mean, st.std, reliable, jump_mm=p.jump_mm, step_mm=p.step_mm,
-                                 max_len=max_len)
+    jumps, soft = rigid_jumps(st.points, st.vis, st.mean, st.std, reliable, jump_mm=p.jump_mm, step_mm=p.step_mm,
+                              max_len=max_len)
     from scipy import ndimage  # here: passive takes only (importing it costs a tenth of a second)
 
     keep = st.vis & ~jumps
@@ -546,7 +538,7 @@ def _provisional(m: _Merger, st: _State, prov: np.ndarray, link: dict, allowed) 
     for _ in range(8):
         tr, _ = _union(st.track, st.track[P], m.label_overlap)
         s2 = m.state(tr, full=False)
-        lk = mg.link_tracks(s2.first, s2.last, s2.p_first, s2.p_last, s2.mean, s2.partner, s2.overlap, **link, min_common=2)
+        lk = link_tracks(s2.first, s2.last, s2.p_first, s2.p_last, s2.mean, s2.partner, s2.overlap, **link, min_common=2)
         pairs = lk.pairs[allowed(s2, lk.pairs)] if lk.pairs.size else lk.pairs
         if pairs.size == 0:
             break
@@ -558,7 +550,7 @@ def _provisional(m: _Merger, st: _State, prov: np.ndarray, link: dict, allowed) 
         if ti == tj:
             continue
         s2 = m.state(tr, full=False)
-        cost, k = mg.common_partner_cost(s2.mean, s2.partner, np.array([ti]), np.array([tj]))
+        cost, k = common_partner_cost(s2.mean, s2.partner, np.array([ti]), np.array([tj]))
         if k[0] >= 2 and cost[0] <= link["link_mm"] and s2.overlap[ti, tj] == 0:
             good.append(P[q])
     return np.array(good, dtype=int).reshape(-1, 2)
@@ -586,7 +578,7 @@ def _cluster(m: _Merger, st: _State, allowed, p: Params) -> tuple[np.ndarray, in
     k = np.empty(len(pairs), dtype=int)
     step = max(1, 2_000_000 // max(T, 1))
     for s in range(0, len(pairs), step):
-        c, kk = mg.common_partner_cost(st.mean, st.partner, pairs[s : s + step, 0], pairs[s : s + step, 1])
+        c, kk = common_partner_cost(st.mean, st.partner, pairs[s : s + step, 0], pairs[s : s + step, 1])
         cost[s : s + step], k[s : s + step] = c, kk
     # D: distance in units of its threshold (≤ 1: one marker); far: known to be two markers
     D = np.full(len(pairs), np.inf)
@@ -597,7 +589,7 @@ def _cluster(m: _Merger, st: _State, allowed, p: Params) -> tuple[np.ndarray, in
     # Kirk's pose distance where partners say nothing: only for tracks that
     # follow each other within the linking gap (a marker's next track comes
     # next), and kept only when clearly the best for both tracks
-    gap = mg.time_gaps(st.vis)
+    gap = time_gaps(st.vis)
     need = ~sig & (gap[pairs[:, 0], pairs[:, 1]] <= max(1, int(round(p.max_gap_s * m.rate))))
     if need.any():
         # cached by the labels of both tracks (the same pairs come back every round)
@@ -607,7 +599,7 @@ def _cluster(m: _Merger, st: _State, allowed, p: Params) -> tuple[np.ndarray, in
         keys = [(tuple(members[a]), tuple(members[b])) for a, b in pairs[need]]
         todo = [q for q, key in enumerate(keys) if key not in m.pose_cache]
         if todo:
-            new = mg.pose_distance(st.points, st.vis, pairs[need][todo])
+            new = pose_distance(st.points, st.vis, pairs[need][todo])
             m.pose_cache.update({keys[q]: float(v) for q, v in zip(todo, new)})
         pd = np.array([m.pose_cache[key] for key in keys])
         D[need] = pd / p.pose_mm
@@ -646,7 +638,7 @@ def _cluster(m: _Merger, st: _State, allowed, p: Params) -> tuple[np.ndarray, in
         np.fill_diagonal(A, 1.0)
         R = (st.overlap[np.ix_(nodes, nodes)] > 0).astype(float)
         np.fill_diagonal(R, 0.0)
-        lab = mg.repulsion_spectral(A, R, kc, rng=rng) if kc < nodes.size else np.arange(nodes.size)
+        lab = repulsion_spectral(A, R, kc, rng=rng) if kc < nodes.size else np.arange(nodes.size)
         # inside each cluster: join by increasing distance, never two tracks seen together
         for cl in np.unique(lab):
             mem = nodes[lab == cl]

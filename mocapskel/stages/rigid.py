@@ -19,8 +19,9 @@ from ..model.tree import depth_first_order
 from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
 from ..solvers.calibrate import pick_frames, refine_skeleton
+from ..solvers.hull import beyond_hull
 from ..solvers.ik_solve import solve_ik
-from ..solvers.rigid import beyond_hull, procrustes_shape
+from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import matrix_to_rotvec, project_to_so3, rotation_between, segments_seen
 
 VERSION = 23
