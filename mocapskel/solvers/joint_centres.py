@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rigid import shape_poses
+from .rigid_shape import shape_poses
 from .sphere import mgdk
 
 
