@@ -10,7 +10,8 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.naming import name_skeleton
-from mocapskel.stages import rigid, segment
+from mocapskel.solvers import plausible
+from mocapskel.stages import segment
 from mocapskel.synth.human import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic
 
@@ -143,7 +144,7 @@ def test_like_limbs_joints_slid_together_are_implausible(kick) -> None:
     and a real jump's refinement slid them to 13 mm apart) are flagged; the fitted ones are not."""
     take, res = kick
     skel = res.motion.skeleton
-    assert rigid.collapsed_pairs(skel) == []
+    assert plausible.collapsed_pairs(skel) == []
     names = name_skeleton(skel, res.motion, "auto").names
     hips = [names.index("LeftUpLeg"), names.index("RightUpLeg")]
     origin = skel.origin.copy()
@@ -152,7 +153,7 @@ def test_like_limbs_joints_slid_together_are_implausible(kick) -> None:
         origin[h] = mid + 0.05 * (origin[h] - mid)
     from dataclasses import replace
 
-    assert rigid.collapsed_pairs(replace(skel, origin=origin)) == sorted(hips)
+    assert plausible.collapsed_pairs(replace(skel, origin=origin)) == sorted(hips)
 
 
 def test_a_back_waist_marker_goes_with_the_pelvis_when_the_trunk_hardly_turns_on_it() -> None:
