@@ -347,6 +347,7 @@ def solve(
 
     from . import __version__
     from .errors import DataError
+    from .solvers.motion import solve as solve_motion
     from .stages import clean, export, ik
 
     params = dict(params or {})
@@ -375,7 +376,7 @@ def solve(
         if l in where:
             pts[:, j] = mk.points[:, where[l]]
     t = time.perf_counter()
-    motion = ik.solve(skeleton, pts, None, iterations=(params.get("ik") or ik.Params()).iterations, rate=mk.rate, source=mk.source)
+    motion = solve_motion(skeleton, pts, None, iterations=(params.get("ik") or ik.Params()).iterations, rate=mk.rate, source=mk.source)
     seconds["ik"] = time.perf_counter() - t
     t = time.perf_counter()
     bvh = export.run(motion, params.get("export") or export.Params())

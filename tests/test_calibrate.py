@@ -12,6 +12,7 @@ from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
 from mocapskel.solvers.calibrate import pick_frames, refine_skeleton, track
+from mocapskel.solvers import deepen, hinges, joint_moves, leaf_hinges, mirror, motion, plausible, refinement, rest_pose
 from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, make
@@ -72,8 +73,8 @@ def test_refinement_recovers_the_exact_skeleton_from_a_perturbed_one(exact_two_m
                   marker_local=exact.marker_local + rng.normal(0, 3.0, exact.marker_local.shape))
     use = pick_frames(np.isfinite(pts).all(-1), 120, must=exact.rest_frame)
     ref = int(np.searchsorted(use, exact.rest_frame))
-    centres = ik_stage._centres_by_edges(exact, exact.joints.centres)
-    start = ik_stage.solve(bad, pts[use], centres[use])
+    centres = motion._centres_by_edges(exact, exact.joints.centres)
+    start = motion.solve(bad, pts[use], centres[use])
     err0 = joint_error(bad, start.rot, start.root_pos, take.truth, use)
     assert np.sqrt(np.mean(err0**2)) > 3.0  # the perturbation is felt
 
@@ -94,8 +95,8 @@ def test_track_from_key_poses_solves_every_frame_exactly(exact_two_marker):
     take, exact = exact_two_marker
     pts = take.markers.points
     use = pick_frames(np.isfinite(pts).all(-1), 40)
-    centres = ik_stage._centres_by_edges(exact, true_centres(exact.joints, take.truth))
-    key = ik_stage.solve(exact, pts[use], centres[use])
+    centres = motion._centres_by_edges(exact, true_centres(exact.joints, take.truth))
+    key = motion.solve(exact, pts[use], centres[use])
     rot, root, resid = track(exact.parent, exact.origin, exact.marker_segment, exact.marker_local, pts, use, key.rot, key.root_pos)
     err = joint_error(exact, rot, root, take.truth, np.arange(pts.shape[0]))
     assert err.max() < 0.05  # mm; the weak rotation prior toward the slerped start pulls a little
@@ -159,7 +160,7 @@ def test_refinement_holds_a_joint_along_the_axis_it_is_told(exact_two_marker):
     c = int(np.flatnonzero(exact.parent >= 0)[3])
     a = np.array([0.0, 0.6, 0.8])
     bad = replace(exact, origin=exact.origin + np.where(np.arange(len(exact.names))[:, None] == c, 5.0 * a, 0.0))
-    start = ik_stage.solve(exact, pts[use], ik_stage._centres_by_edges(exact, exact.joints.centres)[use])
+    start = motion.solve(exact, pts[use], motion._centres_by_edges(exact, exact.joints.centres)[use])
 
     def along(res):  # the joint's offset along a from its parent's marker centroid, relative to the exact skeleton's
         p = exact.parent[c]
@@ -191,11 +192,11 @@ def test_a_hinge_is_found_through_the_twist_of_a_limb_its_markers_hardly_fix():
     twist = np.radians(rng.uniform(-30, 30, n))
     bone = np.array([0.0, 0.0, 1.0])
     knee = Rotation.from_rotvec(flex[:, None] * [1.0, 0, 0]) * Rotation.from_rotvec(twist[:, None] * bone)
-    assert rigid._hinge_direction(knee.as_matrix(), 0.6) is None
-    ax = rigid._hinge_direction(knee.as_matrix(), 0.6, bone)
+    assert hinges._hinge_direction(knee.as_matrix(), 0.6) is None
+    ax = hinges._hinge_direction(knee.as_matrix(), 0.6, bone)
     assert ax is not None and abs(ax[0]) > 0.99, ax
     ball = Rotation.from_rotvec(np.stack([flex, np.radians(rng.uniform(-40, 40, n)), twist], 1))
-    assert rigid._hinge_direction(ball.as_matrix(), 0.6, bone) is None
+    assert hinges._hinge_direction(ball.as_matrix(), 0.6, bone) is None
 
 
 @pytest.fixture(scope="module")
@@ -235,7 +236,7 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     fit): measured from the axis at the marker's level, the half-widths are those of the unslid fit, and
     the knee lands where the unslid one does, one half-width inside its marker and near the truth."""
     take, _, flat = kick
-    deep = rigid.deepen_joints(flat, rigid.Params().hinge_ratio)
+    deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
     (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]  # a joint between two limbs
     c = flat.names.index(name)
     inward = deep.origin[c] - flat.origin[c]
@@ -243,7 +244,7 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     local = flat.marker_local.copy()
     local[flat.marker_segment == c] -= d
     slid = replace(flat, origin=flat.origin + np.eye(len(flat.names))[c][:, None] * d, marker_local=local)
-    back = rigid.deepen_joints(slid, rigid.Params().hinge_ratio)
+    back = deepen.deepen_joints(slid, rigid.Params().hinge_ratio)
     assert name in back.info.get("deepened", {}), back.info.get("deepened")
     assert np.linalg.norm(back.origin[c] - deep.origin[c]) < 3.0  # the axis is found again from the slid place
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (back, slid)]
@@ -258,7 +259,7 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     measured at either marker's level (taken only at the level of the marker nearest the axis, here
     the medial one, the two limbs disagreed and the knee was not moved at all)."""
     _, _, flat = kick
-    deep = rigid.deepen_joints(flat, rigid.Params().hinge_ratio)
+    deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
     (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]
     c = flat.names.index(name)
     p = int(flat.parent[c])
@@ -272,7 +273,7 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     medial = pos[lateral] + 1.4 * half * u
     both = replace(flat, marker_segment=np.append(flat.marker_segment, p),
                    marker_local=np.vstack([flat.marker_local, medial - flat.origin[p]]))
-    got = rigid.deepen_joints(both, rigid.Params().hinge_ratio)
+    got = deepen.deepen_joints(both, rigid.Params().hinge_ratio)
     assert name in got.info.get("deepened", {}), got.info.get("deepened")
     mid = 0.5 * (pos[lateral] + medial)
     want = flat.origin[c] + float((mid - flat.origin[c]) @ u) * u
@@ -297,7 +298,7 @@ def test_the_end_of_a_limb_goes_to_the_middle_of_its_markers_along_its_axis(kick
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (on, off)]
     assert err[0]["LFoot"] < err[1]["LFoot"] - 15.0 and err[0]["LFoot"] < 25.0, (err[0], err[1])
     assert all(abs(err[0][k] - err[1][k]) < 2.0 for k in err[0] if k != "LFoot"), (err[0], err[1])
-    assert np.allclose(rigid._rest_markers(on), rigid._rest_markers(off), atol=1e-9, equal_nan=True)
+    assert np.allclose(rest_pose._rest_markers(on), rest_pose._rest_markers(off), atol=1e-9, equal_nan=True)
     assert "leaf_centred_mm" in on.info["refined"]
 
 
@@ -314,12 +315,12 @@ def test_an_end_of_limb_hinge_inside_the_limb_stays_one_at_its_marker_goes(kick)
     u /= step  # from the marker's side inward, along the hinge axis
 
     def slid(d: float):
-        o, lc = rigid._move_joint(on.origin, on.marker_local, on.marker_segment, c, d * u)
+        o, lc = joint_moves._move_joint(on.origin, on.marker_local, on.marker_segment, c, d * u)
         return replace(on, origin=o, marker_local=lc, info={k: v for k, v in on.info.items() if k != "leaf_centred"})
 
     inside = slid(20.0)
-    assert rigid.centre_leaf_hinges(inside, rigid.Params().hinge_ratio).info.get("leaf_centred") is None
-    out = rigid.centre_leaf_hinges(slid(-step), rigid.Params().hinge_ratio)
+    assert leaf_hinges.centre_leaf_hinges(inside, rigid.Params().hinge_ratio).info.get("leaf_centred") is None
+    out = leaf_hinges.centre_leaf_hinges(slid(-step), rigid.Params().hinge_ratio)
     assert on.names[c] in out.info["leaf_centred"]
     assert np.linalg.norm(out.origin[c] - on.origin[c]) < 3.0  # back where the first move put it
 
@@ -335,9 +336,9 @@ def test_an_end_of_limb_exercised_in_every_direction_is_left_where_the_motion_pu
     joints = pipeline.run_until(take.markers, "joints").artifact
     skel = rigid.run(joints, rigid.Params(leaf_centre=False))
     ratio = rigid.Params().hinge_ratio
-    assert rigid.centre_leaf_hinges(skel, ratio).info.get("leaf_centred") is None
-    monkeypatch.setattr(rigid, "LEAF_PLANAR", 1.0)
-    moved = rigid.centre_leaf_hinges(skel, ratio)
+    assert leaf_hinges.centre_leaf_hinges(skel, ratio).info.get("leaf_centred") is None
+    monkeypatch.setattr(leaf_hinges, "LEAF_PLANAR", 1.0)
+    moved = leaf_hinges.centre_leaf_hinges(skel, ratio)
     assert set(moved.info["leaf_centred"]) == {"LFOT"}, moved.info.get("leaf_centred")
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each["LFoot"] for s in (skel, moved)]
     assert err[1] > err[0] + 5.0, err
@@ -448,14 +449,14 @@ def test_refinement_holds_a_score_joint_that_turns_about_one_axis():
     walk's ankle) is held along that axis, as the joints stage's hinges are; not when it turns about
     two, nor a joint of a one- or two-marker segment (its start is too rough to hold)."""
     skel, rot = _two_segment_turns(5.0, "score")
-    held = rigid._hinge_axes(skel, rot, 0.6)
+    held = hinges._hinge_axes(skel, rot, 0.6)
     assert list(held) == [1] and abs(held[1] @ np.array([0.0, 0.0, 1.0])) > 0.999
     skel2, rot2 = _two_segment_turns(50.0, "score")
-    assert rigid._hinge_axes(skel2, rot2, 0.6) == {}
+    assert hinges._hinge_axes(skel2, rot2, 0.6) == {}
     skel.joints.method = ("jmv",)
-    assert rigid._hinge_axes(skel, rot, 0.6) == {}
+    assert hinges._hinge_axes(skel, rot, 0.6) == {}
     skel.joints.info["per_joint"][0]["hinge"] = True  # placed as a hinge by the joints stage: always held
-    assert list(rigid._hinge_axes(skel, rot, 0.6)) == [1]
+    assert list(hinges._hinge_axes(skel, rot, 0.6)) == [1]
 
 
 def test_implausible_joints_include_a_bone_longer_than_the_subject():
@@ -467,20 +468,20 @@ def test_implausible_joints_include_a_bone_longer_than_the_subject():
     seg = np.array([0, 0, 1, 1, 2, 2])
     local = np.array([[100.0, 0, -150], [-100, 0, -150], [50, 0, 100], [50, 0, -100], [0, 50, 20], [0, -50, 20]])
     ok = SimpleNamespace(origin=origin, marker_local=local, marker_segment=seg, parent=np.array([-1, 0, 1]))
-    assert rigid.implausible_joints(ok, 0.5, 10.0) == []
+    assert plausible.implausible_joints(ok, 0.5, 10.0) == []
     far = origin.copy()
     far[2] = [0, 0, -2400]  # the last joint 2 m below its parent's, its markers where they were
     moved = local.copy()
     moved[4:] += [0, 0, 1600]
     bad = SimpleNamespace(origin=far, marker_local=moved, marker_segment=seg, parent=ok.parent)
-    assert rigid.implausible_joints(bad, 100.0, 10.0) == [2]  # by its length alone (far from markers allowed here)
+    assert plausible.implausible_joints(bad, 100.0, 10.0) == [2]  # by its length alone (far from markers allowed here)
     side = origin.copy()
     side[1] += [600.0, 0, 0]  # the middle joint 600 mm sideways, out of every marker's way
     moved = local.copy()
     moved[2:4] -= [600.0, 0, 0]
     out = SimpleNamespace(origin=side, marker_local=moved, marker_segment=seg, parent=ok.parent)
-    assert rigid.outside_joints(out, 0.15) == [1] and rigid.outside_joints(ok, 0.15) == []
-    assert 1 in rigid.implausible_joints(out, 100.0, 0.15)
+    assert plausible.outside_joints(out, 0.15) == [1] and plausible.outside_joints(ok, 0.15) == []
+    assert 1 in plausible.implausible_joints(out, 100.0, 0.15)
 
 
 def test_a_hip_that_slides_out_of_the_body_is_held():
@@ -494,9 +495,9 @@ def test_a_hip_that_slides_out_of_the_body_is_held():
     take = make(realistic(seed=1, frames=600, motion="walk", markerset="gait"))
     joints = pipeline.run_until(take.markers, "joints").artifact
     skel = rigid.run(joints)
-    assert rigid.outside_joints(skel, rigid.Params().outside) == []
+    assert plausible.outside_joints(skel, rigid.Params().outside) == []
     free = rigid.run(joints, rigid.Params(outside=10.0, mirror_pairs=False))  # never outside: the slide stays
-    assert rigid.outside_joints(free, rigid.Params().outside)
+    assert plausible.outside_joints(free, rigid.Params().outside)
     err = {k: evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each["LThigh"] for k, s in (("held", skel), ("free", free))}
     assert err["held"] < 150.0 < 250.0 < err["free"], err
 
@@ -516,10 +517,10 @@ def test_a_held_refinement_starts_with_its_joints_where_the_prior_holds_them():
     joints = pipeline.run_until(take.markers, "joints").artifact
     params = rigid.Params()
     anchor = rigid.run(joints, rigid.Params(refine_frames=0, mirror_pairs=False, joint_depth=False, leaf_centre=False))
-    free, hold = rigid._refine_once(anchor, params, None, 0.0)
-    bad = rigid.off_the_body(free, params.far, params.outside)
+    free, hold = refinement._refine_once(anchor, params, None, 0.0)
+    bad = plausible.off_the_body(free, params.far, params.outside)
     assert bad, "the free refinement slid no joint off the body"
-    start = rigid.held_start(free, anchor, bad, params, None, hold)
+    start = refinement.held_start(free, anchor, bad, params, None, hold)
     assert start is not free  # the cheaper start
     seg = free.marker_segment
     for c in bad:
@@ -530,11 +531,11 @@ def test_a_held_refinement_starts_with_its_joints_where_the_prior_holds_them():
             # the mean of the two places: within the difference the two segments' shapes make
             assert np.linalg.norm(got - want) < 0.5 * np.linalg.norm(free.origin[c] - start.origin[c]) + 1e-6
     # every marker where it was at rest, every other joint too
-    np.testing.assert_allclose(rigid._rest_markers(start), rigid._rest_markers(free), atol=1e-9)
+    np.testing.assert_allclose(rest_pose._rest_markers(start), rest_pose._rest_markers(free), atol=1e-9)
     others = [s for s in range(len(free.names)) if s not in bad]
     np.testing.assert_allclose(start.origin[others], free.origin[others], atol=1e-9)
-    old, _ = rigid._refine_once(free, params, None, params.joint_prior, set(bad), anchor=anchor, hold=hold)
-    new, _ = rigid._refine_once(start, params, None, params.joint_prior, set(bad), anchor=anchor, hold=hold)
+    old, _ = refinement._refine_once(free, params, None, params.joint_prior, set(bad), anchor=anchor, hold=hold)
+    new, _ = refinement._refine_once(start, params, None, params.joint_prior, set(bad), anchor=anchor, hold=hold)
     ro, rn = old.info["refined"], new.info["refined"]
     assert rn["marker_rms_mm_after"] <= 1.001 * ro["marker_rms_mm_after"], (rn, ro)
     assert rn["iterations"] < ro["iterations"], (rn["iterations"], ro["iterations"])
@@ -557,10 +558,10 @@ def test_a_held_fit_from_the_joints_put_back_falls_back_to_the_free_start(monkey
 
     def run(results, keep, cost):
         started = []
-        monkeypatch.setattr(rigid, "held_start", lambda o, *a, **k: moved)
-        monkeypatch.setattr(rigid, "_refine_once", lambda st, *a, **k: (started.append(st.name) or results[st.name], None))
-        monkeypatch.setattr(rigid, "_held_cost", lambda h, *a, **k: cost[h.name])
-        got = rigid._held_fit(out, None, [1], params, None, None, lambda h: h.name in keep)
+        monkeypatch.setattr(refinement, "held_start", lambda o, *a, **k: moved)
+        monkeypatch.setattr(refinement, "_refine_once", lambda st, *a, **k: (started.append(st.name) or results[st.name], None))
+        monkeypatch.setattr(refinement, "_held_cost", lambda h, *a, **k: cost[h.name])
+        got = refinement._held_fit(out, None, [1], params, None, None, lambda h: h.name in keep)
         return got.name, started
 
     a, b = fit("from moved", 10), fit("from free", 30)
@@ -596,7 +597,7 @@ def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
     origin[leaf] += [0.0, 0.0, 3000.0]  # 3 m from its markers, which stay where they were
     local[skel.marker_segment == leaf] -= [0.0, 0.0, 3000.0]
     held = fitted(replace(skel, origin=origin, marker_local=local), 2.05)  # within hold_tolerance
-    assert rigid.implausible_joints(held, params.far, params.outside) and not rigid.implausible_joints(free, params.far, params.outside)
+    assert plausible.implausible_joints(held, params.far, params.outside) and not plausible.implausible_joints(free, params.far, params.outside)
     first = int(np.flatnonzero(skel.parent >= 0)[0])
     held_sets = []
 
@@ -606,19 +607,19 @@ def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
         return next(calls)
 
     calls = iter([(free, {}), (held, {}), (held, {})])  # held again with the joint it pushed off: still off
-    monkeypatch.setattr(rigid, "_refine_once", refine_once)
-    monkeypatch.setattr(rigid, "held_start", lambda out, *a, **k: out)  # each held fit from the free one, once
-    monkeypatch.setattr(rigid, "slid_joints", lambda before, after, slide: [first])
-    out = rigid.refine(skel, params)
+    monkeypatch.setattr(refinement, "_refine_once", refine_once)
+    monkeypatch.setattr(refinement, "held_start", lambda out, *a, **k: out)  # each held fit from the free one, once
+    monkeypatch.setattr(refinement, "slid_joints", lambda before, after, slide: [first])
+    out = refinement.refine(skel, params)
     assert out is free and "held_because" not in out.info["refined"]
     assert held_sets == [{first}, {first, leaf}]
     # held with it, every joint on the body and within the tolerance: kept, both named
     calls = iter([(free, {}), (held, {}), (fitted(skel, 2.05), {})])
-    out = rigid.refine(skel, params)
+    out = refinement.refine(skel, params)
     assert out is not free and set(out.info["refined"]["held_because"]) == {skel.names[first], skel.names[leaf]}
     # a hold that keeps every joint on the body at once, within the tolerance, is kept
     calls = iter([(free, {}), (fitted(skel, 2.05), {})])
-    out = rigid.refine(skel, params)
+    out = refinement.refine(skel, params)
     assert out is not free and out.info["refined"]["held_because"] == [skel.names[first]]
 
 
@@ -659,23 +660,23 @@ def test_like_limbs_are_moved_together_into_the_parents_plane_of_symmetry():
     get none. Not moved: a pelvis whose markers are not symmetric, a hip the markers fix, two legs on
     one side, a slide across the line (which the plane says nothing about)."""
     skel = _pelvis_and_legs()
-    steps = rigid.mirror_shifts(skel)
+    steps = mirror.mirror_shifts(skel)
     assert sorted(steps) == [1, 2, 4] and all(np.allclose(d, 0.0, atol=1e-9) for d in steps.values())
     slid = _slid(skel, np.array([85.0, 0, 0]), kids=(1, 2, 4))
-    steps = rigid.mirror_shifts(slid)
+    steps = mirror.mirror_shifts(slid)
     assert sorted(steps) == [1, 2, 4]
     for c in (1, 2, 4):
         assert np.allclose(slid.origin[c] + steps[c], skel.origin[c], atol=1e-9)
-    assert rigid.mirror_shifts(_slid(_pelvis_and_legs(extra_marker=True), np.array([85.0, 0, 0]))) == {}
+    assert mirror.mirror_shifts(_slid(_pelvis_and_legs(extra_marker=True), np.array([85.0, 0, 0]))) == {}
     # a hip the markers fix (SCoRE in full) is not moved by the symmetry of a body, nor its twin
-    assert rigid.mirror_shifts(slid, loose={1, 2}) == {}
-    assert sorted(rigid.mirror_shifts(slid, loose={1, 2, 4})) == [1, 2, 4]
+    assert mirror.mirror_shifts(slid, loose={1, 2}) == {}
+    assert sorted(mirror.mirror_shifts(slid, loose={1, 2, 4})) == [1, 2, 4]
     # forward, not sideways: the line between the hips keeps its direction, so the plane is unchanged
-    fwd = rigid.mirror_shifts(_slid(skel, np.array([0, 40.0, 0])))
+    fwd = mirror.mirror_shifts(_slid(skel, np.array([0, 40.0, 0])))
     assert all(np.allclose(d, 0.0, atol=1e-9) for d in fwd.values())
     one_side = _slid(skel, np.array([0.0, 0, 0]))
     one_side.marker_local[one_side.marker_segment == 2] += [260.0, 0, 0]  # the left thigh's markers on the right
-    assert rigid.mirror_shifts(one_side) == {}
+    assert mirror.mirror_shifts(one_side) == {}
 
 
 def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_marker, monkeypatch):
@@ -694,8 +695,8 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     bad = replace(exact, origin=exact.origin + rng.normal(0, 6.0, exact.origin.shape))
     use = pick_frames(np.isfinite(pts).all(-1), 300, must=exact.rest_frame)  # 300 frames: 4 blocks
     ref = int(np.searchsorted(use, exact.rest_frame))
-    centres = ik_stage._centres_by_edges(exact, exact.joints.centres)
-    start = ik_stage.solve(bad, pts[use], centres[use])
+    centres = motion._centres_by_edges(exact, exact.joints.centres)
+    start = motion.solve(bad, pts[use], centres[use])
 
     def refine():
         return refine_skeleton(bad.parent, bad.origin, bad.marker_segment, bad.marker_local, pts[use],

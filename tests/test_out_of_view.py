@@ -94,12 +94,12 @@ def test_the_report_counts_the_frames_each_segment_is_out_of_view(hidden_walk):
 
 def test_frames_where_nothing_is_seen_are_not_counted_out_of_view(hidden_walk):
     from mocapskel.artifacts import markers_of
-    from mocapskel.stages import ik
+    from mocapskel.solvers.motion import solve
 
     _, _, res = hidden_walk
     sk = res.motion.skeleton
     pts = markers_of(sk).points.copy()
-    before = ik.solve(sk, pts, rate=120.0).info["out_of_view_frames"]
+    before = solve(sk, pts, rate=120.0).info["out_of_view_frames"]
     pts[300:310] = np.nan  # nothing seen: the whole body held, no limb more than another
-    after = ik.solve(sk, pts, rate=120.0).info["out_of_view_frames"]
+    after = solve(sk, pts, rate=120.0).info["out_of_view_frames"]
     assert before and after == before, (before, after)

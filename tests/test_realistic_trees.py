@@ -10,9 +10,9 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.model.naming import name_skeleton
-from mocapskel.solvers import grouping
+from mocapskel.solvers import grouping, plausible
 from mocapskel.solvers.partition import scatter_in_frame
-from mocapskel.stages import rigid, segment
+from mocapskel.stages import segment
 from mocapskel.synth.body import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic
 
@@ -145,7 +145,7 @@ def test_like_limbs_joints_slid_together_are_implausible(kick) -> None:
     and a real jump's refinement slid them to 13 mm apart) are flagged; the fitted ones are not."""
     take, res = kick
     skel = res.motion.skeleton
-    assert rigid.collapsed_pairs(skel) == []
+    assert plausible.collapsed_pairs(skel) == []
     names = name_skeleton(skel, res.motion, "auto").names
     hips = [names.index("LeftUpLeg"), names.index("RightUpLeg")]
     origin = skel.origin.copy()
@@ -154,7 +154,7 @@ def test_like_limbs_joints_slid_together_are_implausible(kick) -> None:
         origin[h] = mid + 0.05 * (origin[h] - mid)
     from dataclasses import replace
 
-    assert rigid.collapsed_pairs(replace(skel, origin=origin)) == sorted(hips)
+    assert plausible.collapsed_pairs(replace(skel, origin=origin)) == sorted(hips)
 
 
 def test_a_back_waist_marker_goes_with_the_pelvis_when_the_trunk_hardly_turns_on_it() -> None:
