@@ -376,7 +376,8 @@ def solve(
         if l in where:
             pts[:, j] = mk.points[:, where[l]]
     t = time.perf_counter()
-    motion = solve_motion(skeleton, pts, None, iterations=(params.get("ik") or ik.Params()).iterations, rate=mk.rate, source=mk.source)
+    motion = solve_motion(skeleton, pts, None, iterations=(params.get("ik") or ik.Params()).iterations, rate=mk.rate, source=mk.source,
+                          version=ik.VERSION)
     seconds["ik"] = time.perf_counter() - t
     t = time.perf_counter()
     bvh = export.run(motion, params.get("export") or export.Params())

@@ -13,8 +13,6 @@ from .ik_solve import solve_ik
 from .ik_unflip import unflip
 from .rotations import hold_unobserved, observed_below, segments_seen, slerp_fill_joints
 
-#: The IK stage's version (its ``VERSION``), noted in the motion's info.
-VERSION = 7
 
 #: Defaults of the IK stage's ``Params.tol`` and ``Params.max_step_deg`` (see there).
 TOL = 0.1
@@ -84,6 +82,7 @@ def solve(
     skel: Skeleton, points: np.ndarray, centres: np.ndarray | None = None, *, iterations: int = 10,
     rate: float = 0.0, source: str = "", chunk: int = 2048, tol: float = TOL,
     key_poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, max_step_deg: float = MAX_STEP_DEG,
+    version: int | None = None,
 ) -> Motion:
     """IK of ``points`` (F, M, 3) with a fitted skeleton (markers ordered as ``skel.labels``).
 
@@ -94,6 +93,7 @@ def solve(
     key_poses : (frames (K,), rot (K, S, 3, 3), root_pos (K, 3)) poses known at
     some frames: IK is then solved coarse to fine in time from them
     (:func:`~mocapskel.solvers.calibrate.track`) and ``centres`` is not used.
+    version : the IK stage's ``VERSION``, noted in the motion's info.
     """
     if not np.isfinite(points).any():
         raise DataError("no marker is seen in any frame", source or None)
@@ -150,7 +150,7 @@ def solve(
                         "of it or below it is seen there, and it keeps the joint angles of the frames around — its motion "
                         "there is made up")
     info = {
-        "version": VERSION,
+        "version": version,
         "rms_mm": rms(slice(None)),
         "rms_mm_per_segment": {name: rms(skel.marker_segment == s) for s, name in enumerate(skel.names)},
         "filled_fraction": float(1.0 - count.sum() / resid.size) if resid.size else 0.0,

@@ -26,7 +26,8 @@ import numpy as np
 
 from ..artifacts import Motion, Skeleton, markers_of
 from ..solvers.motion import MAX_STEP_DEG, TOL, _centres_by_edges, solve
-from ..solvers.motion import VERSION  # noqa: F401 - the stage's version, noted in the motion's info
+
+VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ class Params:
     max_step_deg: float = MAX_STEP_DEG
     """Stretches of up to 0.5 s that a segment spends between two turns of more than this
     (deg) in one frame are solved again from its rotation slerped across them, and take
-    the new poses where they fit as well (:func:`~mocapskel.solvers.ik.unflip`); 0: never."""
+    the new poses where they fit as well (:func:`~mocapskel.solvers.ik_unflip.unflip`); 0: never."""
 
 
 def run(skel: Skeleton, params: Params = Params()) -> Motion:
@@ -59,4 +60,4 @@ def run(skel: Skeleton, params: Params = Params()) -> Motion:
     if skel.pose_frames is not None and (counts < params.track_below).any():
         key = (skel.pose_frames, skel.pose_rot, skel.pose_root)
     return solve(skel, mk.points, centres, iterations=params.iterations, rate=mk.rate, source=mk.source, tol=params.tol,
-                 key_poses=key, max_step_deg=params.max_step_deg)
+                 key_poses=key, max_step_deg=params.max_step_deg, version=VERSION)
