@@ -546,7 +546,7 @@ def test_signal_at_several_moments_of_a_fit(tmp_path: Path, medium: Path, sig: i
 
 _FORK_RACE = """
 import os, signal
-from mocapskel import parallel
+from mocapskel.solvers import parallel
 from mocapskel.cli import main
 signal.signal(signal.{sig}, main.{handler})
 # the signal arrives while the fork runs the parent's at-fork hooks (where logging releases its lock)
