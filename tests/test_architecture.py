@@ -23,7 +23,7 @@ MAX_LINES = 700
 ALLOWED: dict[str, tuple[str, ...]] = {
     "mocapskel.errors": (),
     "mocapskel.model": ("mocapskel.model", "mocapskel.artifacts", "mocapskel.errors"),
-    "mocapskel.artifacts": ("mocapskel.errors", "mocapskel.model"),
+    "mocapskel.artifacts": ("mocapskel.errors",),
     "mocapskel.solvers": ("mocapskel.solvers", "mocapskel.model", "mocapskel.artifacts", "mocapskel.errors"),
     "mocapskel.stages": ("mocapskel.artifacts", "mocapskel.errors", "mocapskel.model", "mocapskel.solvers"),
     "mocapskel.io": ("mocapskel.io", "mocapskel.artifacts", "mocapskel.errors", "mocapskel.model", "mocapskel.solvers"),
