@@ -115,7 +115,7 @@ def _imported(name: str, source: bytes, package: str) -> frozenset[str]:
         else:
             target = mod
         out.add(target)
-        for w in m.group(2).decode().strip("()").replace("\n", " ").split(","):
+        for w in re.sub(r"#[^\n]*", "", m.group(2).decode()).strip("()").replace("\n", " ").split(","):
             if w.strip():
                 out.add(f"{target}.{w.split()[0]}")  # ``from . import x``: x may be a module
     return frozenset(m for m in out if (m == package or m.startswith(package + ".")) and _module_file(m) is not None)

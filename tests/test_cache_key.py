@@ -57,6 +57,28 @@ def test_a_stage_s_code_includes_the_solvers_it_shares_with_other_stages() -> No
     assert "mocapskel.stages.ik" not in rigid  # a stage calls solvers, not another stage
 
 
+def test_imports_are_read_however_they_are_written() -> None:
+    """Relative and absolute, in parentheses over several lines with comments, inside functions, with
+    ``as``: every module of the package named is found; names that are not modules are not."""
+    src = b"""from __future__ import annotations
+import numpy as np
+import mocapskel.errors as err
+from . import (
+    pipeline,  # the stage order
+    report,
+)
+from .io import atomic, paths as p
+
+
+def f():
+    from .model.tree import depth_first_order  # not a module: the module it comes from counts
+    return depth_first_order
+"""
+    got = cache_mod._imported("mocapskel.cache", src, "mocapskel")
+    assert got == {"mocapskel", "mocapskel.errors", "mocapskel.pipeline", "mocapskel.report", "mocapskel.io",
+                   "mocapskel.io.atomic", "mocapskel.io.paths", "mocapskel.model.tree"}
+
+
 def test_the_digest_changes_with_code_the_stage_calls_and_only_then(monkeypatch, fresh_digests) -> None:
     before = {s: code_digest(_stage(s)) for s in STAGES}
     assert before == {s: code_digest(_stage(s)) for s in STAGES}  # stable
