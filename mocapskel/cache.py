@@ -121,20 +121,25 @@ def _imported(name: str, source: bytes, package: str) -> frozenset[str]:
     return frozenset(m for m in out if (m == package or m.startswith(package + ".")) and _module_file(m) is not None)
 
 
-def code_modules(name: str) -> list[str]:
-    """Module ``name`` and every module of its package it imports, directly or through others (sorted)."""
+def _code(name: str) -> dict[str, bytes | None]:
+    """Module ``name`` and every module of its package it imports, directly or through others, with their
+    sources (each read once)."""
     package = name.partition(".")[0]
-    seen: set[str] = set()
+    seen: dict[str, bytes | None] = {}
     todo = [name]
     while todo:
         m = todo.pop()
         if m in seen:
             continue
-        seen.add(m)
-        src = module_source(m)
+        seen[m] = src = module_source(m)
         if src is not None:
-            todo.extend(_imported(m, src, package) - seen)
-    return sorted(seen)
+            todo.extend(_imported(m, src, package) - seen.keys())
+    return seen
+
+
+def code_modules(name: str) -> list[str]:
+    """Module ``name`` and every module of its package it imports, directly or through others (sorted)."""
+    return sorted(_code(name))
 
 
 @functools.lru_cache(maxsize=None)
@@ -142,8 +147,9 @@ def code_digest(name: str) -> str:
     """SHA-256 over the source of module ``name`` and of every module of its package it imports, directly or
     through others (:func:`code_modules`): what shapes a stage's output besides its parameters and input."""
     h = hashlib.sha256()
-    for m in code_modules(name):
-        src = module_source(m) or b""
+    code = _code(name)
+    for m in sorted(code):
+        src = code[m] or b""
         h.update(f"{m}\0{len(src)}\0".encode())
         h.update(src)
     return h.hexdigest()

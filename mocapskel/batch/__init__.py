@@ -5,7 +5,7 @@
 
 Work is split so that it runs the same on one machine and on a cluster:
 
-- the *workers* run :func:`fit_take`: they read the input take from its path
+- the *workers* run :func:`~mocapskel.batch.worker.fit_take`: they read the input take from its path
   (so on a cluster the inputs must be at the same path on every worker, e.g. a
   shared file system), use their own artifact cache, and send back the BVH
   text and the report;
@@ -16,8 +16,8 @@ Work is split so that it runs the same on one machine and on a cluster:
 
 Subject identification (Kirk et al. 2005, §5: skeletons of one person have
 the same proportions) compares the joint-to-joint bone lengths of fitted
-skeletons that share a topology; see :func:`proportion_distance`,
-:func:`compare_reports` and :func:`identify_subjects`.
+skeletons that share a topology; see :func:`~mocapskel.batch.proportions.proportion_distance`,
+:func:`~mocapskel.batch.proportions.compare_reports` and :func:`~mocapskel.batch.clustering.identify_subjects`.
 """
 from __future__ import annotations
 

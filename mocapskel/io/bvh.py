@@ -8,7 +8,7 @@ What :func:`write_bvh` writes (DESIGN, "BVH the way importers want it"):
   everywhere (default ``Zrotation Xrotation Yrotation``);
 - joints depth first, children in index order;
 - names that match ``[A-Za-z_][A-Za-z0-9_]*``, unique, none a prefix of
-  another (:func:`sanitize_names` makes any list so);
+  another (:func:`~mocapskel.model.tree.sanitize_names` makes any list so);
 - every leaf with a non-zero End Site;
 - ``Frames:`` the number of frames, ``Frame Time:`` with 10 significant digits
   (at least 8 decimals) so that ``1 / Frame Time`` is the rate (:func:`format_frame_time`);
@@ -16,7 +16,7 @@ What :func:`write_bvh` writes (DESIGN, "BVH the way importers want it"):
 - no NaN: missing frames must be filled by the caller;
 - atomically: a temporary file beside the target, renamed when complete.
 
-Conventions (shared by the writer, the reader and :func:`forward_kinematics`):
+Conventions (shared by the writer, the reader and :func:`~mocapskel.solvers.bvh_pose.forward_kinematics`):
 ``local_rot[f, s]`` is joint ``s``'s rotation relative to its parent, the
 product of its rotation channels in channel order (intrinsic, see
 :mod:`mocapskel.solvers.rotations`); the root's position channels are its
@@ -25,8 +25,8 @@ parsers read them so; parsers that add the two agree when the root OFFSET is
 zero). Joint ``s`` sits at ``pos[parent] + G[parent] @ offset[s]`` with
 ``G`` the global (accumulated) rotations.
 
-Coordinates: mocapskel works in the lab frame in mm; :func:`lab_to_bvh` and
-:func:`lab_rot_to_bvh` apply the ``--up``/``--units`` rules (up z: axes as in
+Coordinates: mocapskel works in the lab frame in mm; :func:`~mocapskel.solvers.bvh_pose.lab_to_bvh` and
+:func:`~mocapskel.solvers.bvh_pose.lab_rot_to_bvh` apply the ``--up``/``--units`` rules (up z: axes as in
 the lab; up y: lab (x, y, z) -> BVH (x, z, -y)). From a ``Motion`` (global
 rotations relative to a rest pose whose axes are the lab axes) the BVH
 arguments are::

@@ -72,7 +72,7 @@ def unit_factor(units: str) -> tuple[str, float | None]:
 
 @dataclass
 class RawTake:
-    """What a format reader hands to :func:`read_markers`.
+    """What a format reader hands to :func:`~mocapskel.io.markers.read_markers`.
 
     points       : (F, M, 3) float64 ndarray, mm, NaN (or another non-finite
                    value) where the marker is not seen; owned by the take.

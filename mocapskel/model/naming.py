@@ -30,10 +30,11 @@ else LeftArm LeftForeArm LeftHand. Joint centres are named after the joint
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .kinematics import segment_origins
 from .tree import sanitize_names
 
 __all__ = ["Naming", "NotPerson", "name_skeleton", "segment_names", "SCHEMES", "JOINT_OF"]
@@ -173,15 +174,11 @@ def _label_side(labels: list[str]) -> str | None:
 
 
 def _joint_points(motion, frames: np.ndarray) -> np.ndarray:
-    from .kinematics import segment_origins
-
     sub = _subsample(motion, frames)
     return segment_origins(sub)
 
 
 def _subsample(motion, frames: np.ndarray):
-    from dataclasses import replace
-
     return replace(motion, root_pos=motion.root_pos[frames], rot=motion.rot[frames])
 
 

@@ -24,7 +24,7 @@ def depth_first_order(parent: np.ndarray) -> np.ndarray:
     order : (S,) int ndarray
         Joint indices depth first from the root, children in index order, so
         every parent comes before its children. It is ``arange(S)`` when the
-        skeleton is already in that order, as every skeleton :func:`read_bvh`
+        skeleton is already in that order, as every skeleton :func:`~mocapskel.io.bvh_read.read_bvh`
         returns is.
     """
     parent = np.asarray(parent, dtype=np.int64)
@@ -161,3 +161,23 @@ def like_chains(parent: np.ndarray) -> list[tuple[int, int]]:
                 if len(ca) == len(cb) >= 2 and all(not (parent == x).any() for x in (ca[-1], cb[-1])):
                     out.append((a, b))
     return out
+
+
+def like_subtrees(parent: np.ndarray, count: np.ndarray) -> list[tuple[int, int, int]]:
+    """(parent, a, b) for every two children of one segment that are like limbs: subtrees of the same
+    shape, segment for segment as many markers (``count``), each of two segments or more (two legs,
+    two arms; not a head and an arm). By parent, then in child order. Stricter than :func:`like_chains`, which
+    compares the chains' lengths only."""
+    parent = np.asarray(parent)
+    out = []
+    for p in range(len(parent)):
+        kids = [int(k) for k in np.flatnonzero(parent == p)]
+        shape = {c: subtree_shape(parent, count, c) for c in kids}
+        out += [(p, a, b) for i, a in enumerate(kids) for b in kids[i + 1:] if shape[a] == shape[b] and shape[a][1]]
+    return out
+
+
+def subtree_shape(parent: np.ndarray, count: np.ndarray, s: int) -> tuple:
+    """A canonical form of the subtree below segment ``s``: its marker count and its children's
+    forms, sorted."""
+    return (int(count[s]), tuple(sorted(subtree_shape(parent, count, int(k)) for k in np.flatnonzero(parent == s))))

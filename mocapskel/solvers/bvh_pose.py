@@ -7,7 +7,7 @@ from typing import Literal, overload
 
 import numpy as np
 
-from .rotations import _parse_order
+from .rotations import ORDERS, _parse_order
 
 
 #: Length of one output unit in mm (mocapskel's internal unit).
@@ -37,7 +37,7 @@ class BvhSkeleton:
         root's: its rest position).
     end_site : (S, 3) float ndarray
         End Site offset of each leaf (ignored for inner joints; a zero one is
-        replaced by a default when written, see :func:`write_bvh`).
+        replaced by a default when written, see :func:`~mocapskel.io.bvh.write_bvh`).
     order : str
         Rotation channel order, e.g. ``"ZXY"`` for ``Zrotation Xrotation Yrotation``.
     """
@@ -329,8 +329,6 @@ def gimbal_margin(local_rot: np.ndarray) -> np.ndarray:
     (S, 6) ndarray
         Degrees, columns in :data:`~mocapskel.solvers.rotations.ORDERS` order.
     """
-    from ..solvers.rotations import ORDERS
-
     R = np.asarray(local_rot, dtype=np.float64)
     S = R.shape[1]
     out = np.empty((S, len(ORDERS)))
@@ -348,8 +346,6 @@ def near_lock_counts(local_rot: np.ndarray, within_deg: float = 20.0) -> np.ndar
     """(6,) joint-frames whose middle angle comes within ``within_deg`` of gimbal lock, per order
     (:data:`~mocapskel.solvers.rotations.ORDERS`); there the Euler angles turn more than
     ``1 / sin(within_deg)`` times faster than the rotation."""
-    from ..solvers.rotations import ORDERS
-
     R = np.asarray(local_rot, dtype=np.float64)
     lim = np.cos(np.radians(within_deg))  # |sin b| above this
     out = np.zeros(len(ORDERS), dtype=np.int64)
@@ -371,8 +367,6 @@ def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_mar
     the one whose closest joint stays farthest from lock, ``preferred`` first
     among equals. See :func:`gimbal_margin`.
     """
-    from ..solvers.rotations import ORDERS
-
     pref = preferred.upper()
     _parse_order(pref)
     R = np.asarray(local_rot)

@@ -135,7 +135,7 @@ _ADJ = [np.array([3 * ((j + r) % 3) + (k + c) % 3 for k in range(3) for j in ran
 
 def _adj3(A: np.ndarray) -> np.ndarray:
     """Adjugates of (F, 3, 3) matrices: ``A @ adj(A) = det(A) I``. Each entry is the cross-product
-    component ``a_{k+1} b_{k+2} - a_{k+2} b_{k+1}`` of two rows (as :func:`_cross`, bit for bit, in
+    component ``a_{k+1} b_{k+2} - a_{k+2} b_{k+1}`` of two rows (as :func:`~mocapskel.solvers.joint_cost._cross`, bit for bit, in
     a C-ordered array as before: the products that follow depend on the layout in their last bits),
     all nine from four gathers (a quarter of the time of three cross products on a few dozen frames)."""
     a = np.ascontiguousarray(A).reshape(A.shape[0], 9)

@@ -58,9 +58,9 @@ def rigid_outliers(
     points : (F, L, 3) ndarray, NaN where unseen.
     vis : (F, L) bool ndarray.
     mean, std : (L, L) ndarray
-        Robust mean and std of every pairwise distance (:func:`pair_sums`).
+        Robust mean and std of every pairwise distance (:func:`~mocapskel.solvers.merge_pairs.pair_sums`).
     partner : (L, L) bool ndarray
-        Rigid partners (:func:`partners_of`).
+        Rigid partners (:func:`~mocapskel.solvers.merge_pairs.partners_of`).
     jump_mm, k_sigma, soft : float
 
     Returns

@@ -6,7 +6,8 @@ import numpy as np
 
 from ..artifacts import Skeleton
 from .joint_moves import _move_joint, _pose_ms, _with_moves
-from .rest_pose import _like_limb_pairs, _rest_groups
+from ..model.tree import like_subtrees
+from .rest_pose import _rest_groups
 
 
 #: A segment's markers are symmetric about a plane when each, reflected in it, lies within this
@@ -120,7 +121,7 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
     parent = np.asarray(skel.parent)
     origin = skel.origin
     out: dict[int, np.ndarray] = {}
-    for p, a, b in _like_limb_pairs(parent, count):
+    for p, a, b in like_subtrees(parent, count):
         mk = pos[seg == p]
         if len(mk) < 2 or a in out or b in out:
             continue

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..artifacts import Skeleton
-from .rest_pose import _extent, _like_limb_pairs, _rest_groups, _rest_markers
+from ..model.tree import like_limb_pairs, like_subtrees, unlike_bones
+from .rest_pose import _extent, _rest_groups, _rest_markers
 from .hull import beyond_hull
 
 
@@ -60,7 +61,7 @@ def collapsed_pairs(skel: Skeleton, frac: float = COLLAPSED) -> list[int]:
     and a fit can slide both to the middle of the pelvis: no body has two hips at one point."""
     pos, seg, count = _rest_groups(skel)
     out: set[int] = set()
-    for _, a, b in _like_limb_pairs(skel.parent, count):
+    for _, a, b in like_subtrees(skel.parent, count):
         if count[a] == 0:
             continue
         ca, cb = pos[seg == a].mean(0), pos[seg == b].mean(0)
@@ -73,8 +74,6 @@ def unlike_limb_bones(skel: Skeleton, tol: float = 0.2) -> int:
     """How many bones of like limbs (two children of one segment that are chains of as many segments, two or
     more: two legs, two arms) differ by more than ``tol`` of the shorter, compared segment for segment down the
     chains (the ``limb_asymmetry`` check's rule, on the tree's shape alone)."""
-    from ..model.tree import like_limb_pairs, unlike_bones
-
     return len(unlike_bones(skel, [(a, b) for a, b, _ in like_limb_pairs(np.asarray(skel.parent))], tol))
 
 

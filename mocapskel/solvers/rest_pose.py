@@ -1,5 +1,4 @@
-"""A fitted skeleton's rest pose: where its markers sit and how far apart, its bone lines, and its
-like limbs."""
+"""A fitted skeleton's rest pose: where its markers sit and how far apart, and its bone lines."""
 from __future__ import annotations
 
 import numpy as np
@@ -41,20 +40,3 @@ def _rest_groups(skel: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return pos, seg, np.bincount(seg[seg >= 0], minlength=len(skel.parent))
 
 
-def _like_limb_pairs(parent: np.ndarray, count: np.ndarray) -> list[tuple[int, int, int]]:
-    """(parent, a, b) for every two children of one segment that are like limbs: subtrees of the same
-    shape, segment for segment as many markers (``count``), each of two segments or more (two legs,
-    two arms; not a head and an arm). By parent, then in child order."""
-    parent = np.asarray(parent)
-    out = []
-    for p in range(len(parent)):
-        kids = [int(k) for k in np.flatnonzero(parent == p)]
-        shape = {c: _subtree_shape(parent, count, c) for c in kids}
-        out += [(p, a, b) for i, a in enumerate(kids) for b in kids[i + 1:] if shape[a] == shape[b] and shape[a][1]]
-    return out
-
-
-def _subtree_shape(parent: np.ndarray, count: np.ndarray, s: int) -> tuple:
-    """A canonical form of the subtree below segment ``s``: its marker count and its children's
-    forms, sorted."""
-    return (int(count[s]), tuple(sorted(_subtree_shape(parent, count, int(k)) for k in np.flatnonzero(parent == s))))

@@ -47,7 +47,7 @@ def sphere_mle(
         Samples; NaN rows are ignored.
     init : SphereFit or (3,) ndarray, optional
         Starting centre (radii start at the mean distance to it). Default:
-        the :func:`mgdk` fit with ``sigma=0`` (i.e. :func:`gdke` for one
+        the :func:`~mocapskel.solvers.sphere.mgdk` fit with ``sigma=0`` (i.e. :func:`~mocapskel.solvers.sphere.gdke` for one
         marker), or the data mean shifted off the data when that fails.
     max_nfev : int, optional
         Function-evaluation budget.

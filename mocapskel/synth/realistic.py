@@ -27,7 +27,7 @@ Marker sets (``markerset``)
     LSHO LELB LWRA LWRB LFIN LKNE LANK LHEE LTOE LMT5; 64 markers). A plate
     slides on the skin as a whole (its markers stay rigid among themselves).
 ``"default"``
-    The 48 (or ``markers_per_segment``) markers of :func:`human_take`.
+    The 48 (or ``markers_per_segment``) markers of :func:`~mocapskel.synth.human.human_take`.
 
 Markers on a joint
 ------------------
@@ -78,7 +78,7 @@ Motions
 ``run`` (~3 m/s, hip ~55 deg, knee ~90; feet past 5 m/s), ``climb`` (stairs up,
 170 mm rise, 280 mm going), ``reach`` (standing, arms reach to random targets,
 trunk leans), ``kick`` (fighting guard, front and roundhouse kicks; the foot
-reaches 6-10 m/s), ``rom`` (the range-of-motion take of :func:`human_take`).
+reaches 6-10 m/s), ``rom`` (the range-of-motion take of :func:`~mocapskel.synth.human.human_take`).
 """
 from __future__ import annotations
 
@@ -158,9 +158,9 @@ def realistic_take(
     wands : bool
         ``"gait"``: LTHI and LTIB on ~60 mm wands.
     markers_per_segment :
-        ``"default"`` set only, as in :func:`human_take`.
+        ``"default"`` set only, as in :func:`~mocapskel.synth.human.human_take`.
     soft_tissue_mm : float
-        Extra pose-independent skin wobble of :func:`human_take` (RMS mm).
+        Extra pose-independent skin wobble of :func:`~mocapskel.synth.human.human_take` (RMS mm).
     hinge_slack_deg : (2,) floats
         Half-ranges of the knees' and elbows' off-axis rotation (the ``rom``
         motion uses them whole; everyday motions 20-30 % of them).
@@ -168,7 +168,7 @@ def realistic_take(
     Returns
     -------
     SynthTake
-        The truth has the format of :func:`human_take`'s (15 segments; the 7
+        The truth has the format of :func:`~mocapskel.synth.human.human_take`'s (15 segments; the 7
         lower-body ones for ``"gait"``); ``marker_segment`` is the bone each
         marker sits on. ``info`` adds ``markerset``, ``skin``, ``marker_kind``,
         ``joint_markers`` {label: joint}, ``marker_segments_ok`` (per label the
