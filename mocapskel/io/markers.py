@@ -21,7 +21,10 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import InputError, UsageError
+from .c3d import read_c3d
+from .c3d_write import write_c3d
 from .raw import RawTake, check_rate
+from .trc import read_trc, write_trc
 
 __all__ = [
     "COMPUTED_POINT_PATTERNS",
@@ -228,14 +231,7 @@ def read_markers(
     """
     p, ext = _check_input_path(path)
     spath = str(path)
-    if ext == ".c3d":
-        from .c3d import read_c3d
-
-        raw = read_c3d(path)
-    else:
-        from .trc import read_trc
-
-        raw = read_trc(path)
+    raw = read_c3d(path) if ext == ".c3d" else read_trc(path)
     exclude = (exclude,) if isinstance(exclude, str) else tuple(exclude)
     include = (include,) if isinstance(include, str) else tuple(include)
     return _finish(raw, p.name, spath, exclude=exclude, include=include)
@@ -389,10 +385,6 @@ def write_markers(path: str | os.PathLike, markers: Markers) -> None:
     if p.is_dir():
         raise UsageError("is a folder — give a file name ending in .c3d or .trc", str(path))
     if ext == ".c3d":
-        from .c3d_write import write_c3d
-
         write_c3d(p, markers)
     else:
-        from .trc import write_trc
-
         write_trc(p, markers)
