@@ -125,7 +125,10 @@ LINE_FRAC = 0.1
 
 
 def _in_line(shape: np.ndarray) -> bool:
-    """Whether the points ``shape`` (n, 3) lie nearly in one line (see ``LINE_FRAC``)."""
+    """Whether the points ``shape`` (n, 3) lie nearly in one line (see ``LINE_FRAC``); also when the shape
+    could not be fitted (NaN: no frame sees three of its points out of line)."""
+    if not np.isfinite(shape).all():
+        return True
     sv = np.linalg.svd(shape - shape.mean(0), compute_uv=False)
     return not sv[1] >= LINE_FRAC * sv[0]
 
