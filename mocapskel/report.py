@@ -55,6 +55,8 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
         rep["segments_left_out"] = [mk.labels[i] for i in np.flatnonzero(segs.group < 0)]
         rep["segments_moved"] = list(segs.info.get("moved", []))
         rep["segments_split"] = list(segs.info.get("split_nonrigid", []))
+        rep["segments_computed"] = list(segs.info.get("computed", []))
+        warnings.extend(w for w in segs.info.get("warnings", []) if w not in warnings)
     if topo is not None:
         rep["topology"] = {
             "root": skel.names[topo.root],

@@ -26,8 +26,8 @@ import numpy as np
 from ..artifacts import Markers, Segments
 from ..errors import DataError
 from ..solvers.distances import (
-    _distance_std, _extent, _flat, _pair_distances, affinity, choose_sigma, merge_still_groups, rigid_groups,
-    skin_level, spread_cost,
+    _distance_std, _extent, _flat, _pair_distances, affinity, choose_sigma, computed_points, merge_still_groups,
+    rigid_groups, skin_level, spread_cost,
 )
 from ..solvers.grouping import (
     absorb_lone_markers, absorb_pairs, join_markers_on_joints, pair_lone_markers, reassign_by_frame, split_nonrigid,
@@ -35,7 +35,7 @@ from ..solvers.grouping import (
 )
 from ..solvers.spectral import spectral_clustering
 
-VERSION = 12
+VERSION = 13
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,27 @@ RIGID_FRAC = 0.02
 COMPUTED_FRAC = 1e-4
 
 
+def _computed(markers: Markers, iu: np.ndarray, pooled: np.ndarray, floor: float) -> tuple[np.ndarray, list, list]:
+    """The points among ``iu`` that a model computed (see :func:`computed_points`): their mask over ``iu``,
+    ``[label, why]`` for each, and the warning that says so."""
+    computed = computed_points(pooled, floor)
+    if not computed.any():
+        return computed, [], []
+    S = np.where(np.eye(iu.size, dtype=bool), np.inf, np.nan_to_num(pooled, nan=np.inf))
+    tight = np.sort(S[computed], axis=1)[:, 1]
+    measured = skin_level(pooled[np.ix_(~computed, ~computed)])
+    labels = [markers.labels[i] for i in iu[computed]]
+    why = (f"computed by a model: rigid with its neighbours to {float(np.max(tight)):.3g} mm or better, and with"
+           " points on two bodies that move against each other")
+    info = [[lab, why] for lab in labels]
+    shown = ", ".join(labels[:12]) + (" …" if len(labels) > 12 else "")
+    said = [f"{len(labels)} points left out of the fit as computed by a model (joint centres, a body model's"
+            f" points), however they are labelled: {shown} — each keeps its distances to within"
+            f" {float(np.max(tight)):.3g} mm, far below the take's own {measured:.2g} mm, and sits rigidly on two"
+            " bodies that move against each other, as no marker can"]
+    return computed, info, said
+
+
 def run(markers: Markers, params: Params = Params()) -> Segments:
     """Group the markers of a take into rigid segments.
 
@@ -149,6 +170,17 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
     with warnings.catch_warnings():  # pairs never seen together stay NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         pooled = np.nanmedian(np.stack(stds), axis=0)[np.ix_(iu, iu)]
+        md = np.nanmean(first, axis=0)  # mean distance of every marker pair
+    size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
+    computed, computed_info, said = _computed(markers, iu, pooled, COMPUTED_FRAC * size)
+    if computed.any():
+        # the points a model computed are left out as markers seen too rarely are, and the take measured without them
+        use[iu[computed]] = False
+        iu, pooled = iu[~computed], pooled[np.ix_(~computed, ~computed)]
+        ti, tj = np.triu_indices(M, 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            size = float(np.nanmedian(md[use[ti] & use[tj]]))
     k = params.n_segments
     if k is not None and k > iu.size:  # before the eigen-gap, which indexes k eigenvalues
         raise DataError(
@@ -156,10 +188,6 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
             markers.source or None,
         )
     off = pooled[~np.eye(pooled.shape[0], dtype=bool)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        md = np.nanmean(first, axis=0)  # mean distance of every marker pair
-    size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
     level = skin_level(pooled, COMPUTED_FRAC * size)
     tau = max(params.rigid_k * level, COMPUTED_FRAC * size)  # exact data: rigid to rounding
     p95 = float(np.nanpercentile(off, 95)) if np.isfinite(off).any() else 0.0
@@ -266,6 +294,8 @@ def run(markers: Markers, params: Params = Params()) -> Segments:
         "spread_cost": cost,
         "sigma_mm": sigma,
         "left_out": [markers.labels[i] for i in np.flatnonzero(~use)],
+        "computed": computed_info,
+        "warnings": said,
         "groups": [[markers.labels[i] for i in np.flatnonzero(group == g)] for g in range(n)],
         "moved": split,
         "split_nonrigid": split_info,
