@@ -35,6 +35,7 @@ import numpy as np
 from ..artifacts import Joints, Topology
 from ..model.measures import marker_extent
 from ..errors import DataError
+from ..model.leave_out import leave_out
 from ..model.naming import segment_names
 from ..solvers.parallel import run_blocks, run_forked
 from ..solvers.hybrid import solve_tree
@@ -519,39 +520,3 @@ def leave_out_strays(joints: Joints, far: float) -> Joints:
                     f" from that segment's markers (more than {far:g} of the subject's marker extent): a marker on a"
                     " prop or a sync device, a loose marker, an object the subject handles")
     return leave_out(joints, [(s_, e) for s_, e, _ in strays], said)
-
-
-def leave_out(joints: Joints, drops: list[tuple[int, int]], said: list[str]) -> Joints:
-    """``joints`` without the leaf segments ``drops`` [(segment, its edge)]: their markers left out of the
-    segments (as markers seen too rarely are), their joints out of the tree, the rest renumbered; ``said``
-    the warnings."""
-    topo = joints.topology
-    seg = topo.segments
-    labels = seg.markers.labels
-    drop = sorted(s_ for s_, _ in drops)
-    keep_s = np.array([s_ for s_ in range(seg.n_segments) if s_ not in drop])
-    new_of = np.full(seg.n_segments, -1, dtype=int)
-    new_of[keep_s] = np.arange(keep_s.size)
-    group = np.where(seg.group >= 0, new_of[np.maximum(seg.group, 0)], -1)
-    gone = [labels[int(i)] for s_ in drop for i in seg.members(s_)]
-    seg_info = dict(seg.info, left_out=list(seg.info.get("left_out", [])) + gone, n_segments=int(keep_s.size))
-    if isinstance(seg.info.get("groups"), list) and len(seg.info["groups"]) == seg.n_segments:
-        seg_info["groups"] = [g for s_, g in enumerate(seg.info["groups"]) if s_ not in drop]
-    new_seg = replace(seg, group=group, info=seg_info)
-    keep_e = np.array([e for e in range(topo.edges.shape[0]) if e not in {e_ for _, e_ in drops}], dtype=int)
-    edges = new_of[topo.edges[keep_e]]
-    root = int(new_of[topo.root]) if topo.root not in drop else int(edges[0][0])
-    topo_info = dict(topo.info)
-    if isinstance(topo_info.get("own_floor_mm2"), list) and len(topo_info["own_floor_mm2"]) == seg.n_segments:
-        topo_info["own_floor_mm2"] = [topo_info["own_floor_mm2"][s_] for s_ in keep_s]
-    new_topo = replace(topo, segments=new_seg, edges=edges, cost=topo.cost[keep_e],
-                       pair_cost=topo.pair_cost[np.ix_(keep_s, keep_s)], root=root, info=topo_info)
-    info = dict(joints.info, per_joint=[joints.info["per_joint"][e] for e in keep_e],
-                warnings=list(joints.info.get("warnings", [])) + said)
-    if "alt_start" in info:
-        old_to_new = {int(e): i for i, e in enumerate(keep_e)}
-        info["alt_start"] = [old_to_new[e] for e in info["alt_start"] if e in old_to_new]
-    alt = None if joints.alt_centres is None else joints.alt_centres[:, keep_e]
-    return replace(joints, topology=new_topo, centres=joints.centres[:, keep_e],
-                   method=tuple(joints.method[e] for e in keep_e), residual=joints.residual[keep_e],
-                   info=info, alt_centres=alt)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..artifacts import Joints, Skeleton
 from ..errors import DataError
+from ..model.leave_out import cut_off, leave_out, segment_words
 from ..model.tree import depth_first_order
 from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
@@ -25,7 +26,7 @@ from ..solvers.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
 
-VERSION = 23
+VERSION = 24
 
 
 @dataclass(frozen=True)
@@ -115,25 +116,74 @@ def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray,
     return int(np.argmax(score))
 
 
-def run(joints: Joints, params: Params = Params()) -> Skeleton:
-    """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s."""
-    seg, mk, pts, edges = _parts(joints)
-    F = pts.shape[0]
-    S = seg.n_segments
+class Unfittable(DataError):
+    """Segments whose markers are never seen well enough with their joints to fit a rigid shape."""
+
+    def __init__(self, segments: list[int], labels: list[list[str]], path: str | None = None):
+        self.segments = [int(s) for s in segments]
+        self.labels = labels
+        first = f"segment {segments[0]} (markers {', '.join(labels[0])})"
+        super().__init__(f"{first} is never seen well enough to fit — its markers are too rarely seen together"
+                         " with its joints; leave them out with --exclude", path)
+
+
+def _tree(joints: Joints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(parent, the edge to the parent, depth-first order) of every segment."""
+    S = joints.topology.segments.n_segments
     parent = np.full(S, -1, dtype=int)
     parent_edge = np.full(S, -1, dtype=int)
-    for e, (a, b) in enumerate(edges):
+    for e, (a, b) in enumerate(joints.topology.edges):
         parent[b] = a
         parent_edge[b] = e
-    order = depth_first_order(parent)  # parents before children
+    return parent, parent_edge, depth_first_order(parent)  # parents before children
 
+
+def _rest(joints: Joints, params: Params) -> int:
+    seg, mk, pts, _ = _parts(joints)
+    F = pts.shape[0]
     if params.rest_frame is None:
-        rest = choose_rest_frame(pts, joints.centres, seg.group, S, params.rest_search)
-    else:
-        rest = int(params.rest_frame)
-        if not 0 <= rest < F:
-            raise DataError(f"rest frame {rest} is outside the take's {F} frames — choose a frame from 0 to {F - 1}", mk.source or None)
-    skel = _fit(joints, joints.centres, rest, parent, parent_edge, order, params)
+        return choose_rest_frame(pts, joints.centres, seg.group, seg.n_segments, params.rest_search)
+    rest = int(params.rest_frame)
+    if not 0 <= rest < F:
+        raise DataError(f"rest frame {rest} is outside the take's {F} frames — choose a frame from 0 to {F - 1}", mk.source or None)
+    return rest
+
+
+def without_unfittable(joints: Joints, err: Unfittable) -> Joints:
+    """``joints`` without the segments of ``err`` and those that hang on the tree only through them
+    (:func:`~mocapskel.model.leave_out.cut_off`), each said in a warning. A DataError when no skeleton
+    of two segments and a joint would be left."""
+    seg = joints.topology.segments
+    S = seg.n_segments
+    names = segment_names([[seg.markers.labels[i] for i in seg.members(s)] for s in range(S)])
+    count = np.bincount(seg.group[seg.group >= 0], minlength=S)
+    hung = cut_off(joints.topology.edges, joints.topology.root, S, err.segments, count)
+    if S - len(err.segments) - len(hung) < 2:
+        left = ", ".join(segment_words(lab, names[s]) for s, lab in zip(err.segments, err.labels))
+        raise DataError(f"{left} never seen well enough to fit, and without {'it' if len(err.segments) == 1 else 'them'}"
+                        " no two segments with a joint are left — its markers are too rarely seen together with its"
+                        " joints", seg.markers.source or None) from None
+    words = [segment_words([seg.markers.labels[i] for i in seg.members(s)], names[s]) for s in range(S)]
+    said = [f"{words[s]} left out of the skeleton: never seen well enough to fit — no frame sees three of its"
+            " markers and joint centres together, nor its markers with each of its joints (the segments it joins"
+            " are seen when it is not, or never together)" for s in err.segments]
+    said += [f"{words[s]} left out of the skeleton with {words[through]}: it hangs on the rest only through it,"
+             " and no joint of it with the rest was found" for s, through in sorted(hung.items())]
+    drops = [(s, -1) for s in list(err.segments) + list(hung)]
+    return leave_out(joints, drops, said)
+
+
+def run(joints: Joints, params: Params = Params()) -> Skeleton:
+    """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s. A segment that cannot be
+    fitted is left out (see :func:`without_unfittable`), and the rest fitted."""
+    while True:
+        parent, parent_edge, order = _tree(joints)
+        rest = _rest(joints, params)
+        try:
+            skel = _fit(joints, joints.centres, rest, parent, parent_edge, order, params)
+            break
+        except Unfittable as err:
+            joints = without_unfittable(joints, err)
     if params.refine_frames > 0:
         if joints.alt_centres is None:
             skel = refine(skel, params, joints.centres)
@@ -217,6 +267,7 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
     noise = np.full(S, np.nan)
     joint_in = {}  # (segment, edge) -> joint position in that segment's rest shape
     shapes = {}
+    unfit: list[int] = []
     for s in range(S):
         mids = seg.members(s)
         eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
@@ -233,15 +284,14 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
         if not np.isfinite(shape).all() and mids.size == 2:
             shape = _place_about_axis(obs, rest, shape)
         if not np.isfinite(shape).all():
-            raise DataError(
-                f"segment {s} (markers {', '.join(mk.labels[i] for i in mids)}) is never seen well enough to fit"
-                " — its markers are too rarely seen together with its joints; leave them out with --exclude",
-                mk.source or None,
-            )
+            unfit.append(s)
+            continue
         noise[s] = float(np.sqrt(np.nanmean(rms**2))) if np.isfinite(rms).any() else np.nan
         shapes[s] = (mids, shape[: mids.size])
         for j, e in enumerate(eids):
             joint_in[(s, e)] = shape[mids.size + j]
+    if unfit:
+        raise Unfittable(unfit, [[mk.labels[i] for i in seg.members(s)] for s in unfit], mk.source or None)
 
     for s in order:
         if parent[s] < 0:
