@@ -509,3 +509,16 @@ def test_fit_without_cache_does_not_hash_the_take(tmp_path: Path, monkeypatch: p
     first = pipeline.run_until(a, "clean", cache=Cache(tmp_path / "cache"))
     again = pipeline.run_until(a, "clean", cache=Cache(tmp_path / "cache"))
     assert again.cached == ["clean"] and again.key == first.key
+
+
+def test_computed_points_from_the_groups_type_groups_names_and_virtual_groups(tmp_path: Path) -> None:
+    """``POINT:TYPE_GROUPS`` names the POINT parameters that list model outputs (Vicon): their labels are
+    computed, as are those of a group named virtual or modelled; a group of markers it names is not."""
+    xyz = np.ones((3, 5, 3))
+    labels = ["LASI", "Knee1", "Mid", "RASI", "C7"]
+    extra = {("POINT", "TYPE_GROUPS"): ["MARKERS", "BODYMODEL"], ("POINT", "BODYMODEL"): ["Knee1"],
+             ("POINT", "MARKERS"): ["LASI", "RASI"], ("POINT", "VIRTUAL_MARKERS"): ["Mid"]}
+    m = read_markers(ezc3d_file(tmp_path / "typed.c3d", xyz, labels, extra=extra))
+    assert m.labels == ("LASI", "RASI", "C7")
+    assert m.info["excluded_why"]["Knee1"] == "computed point: listed in POINT:BODYMODEL"
+    assert m.info["excluded_why"]["Mid"] == "computed point: listed in POINT:VIRTUAL_MARKERS"

@@ -50,6 +50,8 @@ the remaining frames are read from the data block with numpy.
 """
 from __future__ import annotations
 
+import re
+
 import os
 from typing import Literal
 
@@ -135,6 +137,32 @@ def _read_frames_ezc3d(path: str | os.PathLike) -> np.ndarray:
 #: 2.9 million samples).
 EZC3D_MAX_SAMPLES = 5_000_000
 
+
+
+#: POINT parameters that list the labels of points a model computed (Vicon's typed groups: model outputs
+#: stored as points), read whether or not ``POINT:TYPE_GROUPS`` names them.
+TYPED_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
+#: Other POINT parameters whose name says their labels are virtual or modelled points.
+_VIRTUAL_GROUP = re.compile(r"VIRTUAL|MODELL?ED")
+#: POINT parameters that never list computed points, whatever ``POINT:TYPE_GROUPS`` says.
+_NOT_TYPED = frozenset({"LABELS", "DESCRIPTIONS", "UNITS", "USED", "TYPE_GROUPS"})
+
+
+def typed_groups(lay) -> list[str]:
+    """The POINT parameters of the layout ``lay`` that list computed points' labels: the typed groups
+    above, every string parameter that ``POINT:TYPE_GROUPS`` names (Vicon lists its type groups there, by
+    name or as name/parameter pairs) but one of markers, and any named virtual or modelled."""
+    have = lay.params.get("POINT", {})
+    out = list(TYPED_GROUPS)
+    named = [n.strip().upper() for n in lay.string_series("POINT", "TYPE_GROUPS")]
+    for n in named + sorted(have):
+        if n in out or n in _NOT_TYPED or n not in have or n[-1:].isdigit() and n.rstrip("0123456789") in have:
+            continue
+        if "MARKER" in n and not _VIRTUAL_GROUP.search(n):
+            continue  # a group of markers is what the cameras saw
+        if n in named or _VIRTUAL_GROUP.search(n):
+            out.append(n)
+    return out
 
 def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy"] = "auto") -> RawTake:
     """Read the 3D points of a C3D file.
@@ -294,7 +322,7 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy
     desc = lay.string_series("POINT", "DESCRIPTIONS")
     descriptions = desc[:P] if len(desc) >= P else desc + [""] * (P - len(desc))
     computed: dict[str, str] = {}
-    for group in ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS"):
+    for group in typed_groups(lay):
         for lab in lay.string_series("POINT", group):
             if lab.strip():
                 computed.setdefault(lab.strip(), f"listed in POINT:{group}")
