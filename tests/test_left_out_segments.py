@@ -182,3 +182,22 @@ def test_regression_a_real_take_cut_short_fits_without_the_segment_it_cannot_fit
                for w in rep["warnings"]), rep["warnings"]
     kept = {lab for s in rep["segments"] for lab in s["markers"]}
     assert not kept & set(rep["segments_left_out"])
+
+
+def test_a_static_trial_with_joint_centres_written_in_is_still_refused(tmp_path: Path) -> None:
+    """A subject standing still (swaying as a whole), with its model's joint centres stored as points:
+    nothing moves against anything, so no point is taken for computed, and the take is refused as one rigid
+    body (exit 4)."""
+    take = make(Recipe(kind="human", frames=600, noise_mm=0.0, seed=4))
+    rng = np.random.default_rng(4)
+    F = take.markers.n_frames
+    sway = 20.0 * np.sin(2 * np.pi * 0.3 * np.arange(F) / take.markers.rate)[:, None, None] * np.array([1.0, 0.5, 0.0])
+    still = take.markers.points[:1] + sway  # the whole body sways by 20 mm, rigidly
+    mk = replace(take.markers, points=still + rng.normal(0.0, 0.5, still.shape))
+    J = take.truth.joints[:1] + sway
+    names = tuple(f"P{i:02d}" for i in range(J.shape[1]))
+    src, out = tmp_path / "static.c3d", tmp_path / "static.bvh"
+    write_markers(src, replace(mk, points=np.concatenate([mk.points, J], axis=1), labels=mk.labels + names))
+    r = CliRunner().invoke(cli, ["fit", str(src), "-o", str(out), "--no-cache", "-q"])
+    assert r.exit_code == 4, r.stderr
+    assert "all markers move as one rigid body" in r.stderr and not out.exists()
