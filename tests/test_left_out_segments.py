@@ -201,3 +201,14 @@ def test_a_static_trial_with_joint_centres_written_in_is_still_refused(tmp_path:
     r = CliRunner().invoke(cli, ["fit", str(src), "-o", str(out), "--no-cache", "-q"])
     assert r.exit_code == 4, r.stderr
     assert "all markers move as one rigid body" in r.stderr and not out.exists()
+
+
+def test_noise_free_plates_on_moving_skin_are_not_computed() -> None:
+    """Generated rigid four-marker plates without camera noise, on skin that slides with the joints: the
+    plates' markers are rigid to rounding among themselves, as a model's points are, but each plate is one
+    body: none bridges two bodies, and every marker stays."""
+    take = make(Recipe(kind="human", frames=600, noise_mm=0.0, markerset="cluster", skin="realistic", motion="walk",
+                       seed=1))
+    seg = pipeline.run_until(take.markers, "segment").artifact
+    assert seg.info["computed"] == []
+    assert seg.info["left_out"] == [] and (seg.group >= 0).all()
