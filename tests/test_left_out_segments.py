@@ -121,11 +121,9 @@ def test_nothing_is_computed_on_a_take_without_noise() -> None:
     rep = pipeline.fit(take.markers).report
     assert rep["segments_computed"] == [] and rep["segments_left_out"] == []
     with_jc = _with_joint_points(take, ["J0", "J1"])
-    from mocapskel.stages import segment
     seg = pipeline.run_until(with_jc, "segment").artifact
     assert seg.info["computed"] == []
     assert set(with_jc.labels) - {"J0", "J1"} <= {with_jc.labels[i] for i in np.flatnonzero(seg.group >= 0)}
-    assert segment.COMPUTED_FRAC > 0
 
 
 def test_markers_rigid_among_themselves_on_one_body_are_kept() -> None:
