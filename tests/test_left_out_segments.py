@@ -210,3 +210,30 @@ def test_noise_free_plates_on_moving_skin_are_not_computed() -> None:
     seg = pipeline.run_until(take.markers, "segment").artifact
     assert seg.info["computed"] == []
     assert seg.info["left_out"] == [] and (seg.group >= 0).all()
+
+
+REALREF = Path(__file__).resolve().parents[2] / "shared" / "realref"
+
+
+def test_regression_a_real_take_with_its_model_points_written_in_fits_as_without_them(tmp_path: Path) -> None:
+    """CMU 16_07 with the 20 joint points of its production skeleton (a body model's outputs, rigid to 0.03 mm
+    on their bones) and two points along each of its 23 bones written in under anonymous labels: the fit
+    grouped the 107 points into 33 segments, most markers alone. The 66 are left out now, and the fit is
+    the one of the take without them (its BVH through the command line is byte for byte the same)."""
+    src, ref = REALREF / "cmu_16_07.c3d", REALREF / "cmu_16_07.ref.npz"
+    if not (src.is_file() and ref.is_file()):
+        pytest.skip(f"REFERENCE TAKES NOT FOUND at {REALREF} — the real computed-point test did NOT run")
+    mk = read_markers(src)
+    with np.load(ref, allow_pickle=False) as z:
+        J, pairs = z["joints"], z["pairs"]
+    extra = [J] + [(J[:, a] + f * (J[:, b] - J[:, a]))[:, None] for a, b in pairs for f in (1 / 3, 2 / 3)]
+    names = [f"P{i:02d}" for i in range(J.shape[1])] + [f"Q{k:02d}{f}" for k in range(len(pairs)) for f in (1, 2)]
+    path = tmp_path / "with_model.c3d"
+    write_markers(path, replace(mk, points=np.concatenate([mk.points] + extra, axis=1), labels=mk.labels + tuple(names)))
+    got = pipeline.fit(read_markers(path)).report
+    plain = pipeline.fit(mk).report
+    assert sorted(c[0] for c in got["segments_computed"]) == sorted(names)
+    assert [s["markers"] for s in got["segments"]] == [s["markers"] for s in plain["segments"]]
+    assert [(b["segment"], b["parent"]) for b in got["bones"]] == [(b["segment"], b["parent"]) for b in plain["bones"]]
+    lengths = [np.array([np.nan if b["length_mm"] is None else b["length_mm"] for b in r["bones"]]) for r in (got, plain)]
+    np.testing.assert_allclose(*lengths, rtol=1e-9)  # the same fit, to the last bits of the float sums
