@@ -193,16 +193,16 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    f"segments, more than half the subject's marker extent ({extent:.0f} mm)"))
 
     if F >= 2:
-        pos = segment_origins(motion)  # (F, S, 3)
-        jstep = np.linalg.norm(np.diff(pos, axis=0), axis=-1)  # (F-1, S)
-        with np.errstate(invalid="ignore"):
-            mstep = np.linalg.norm(np.diff(points, axis=0), axis=-1)  # (F-1, M), NaN unless seen in both
-        any_m = np.where(np.isfinite(mstep), mstep, -np.inf).max(1) if mstep.size else np.full(F - 1, -np.inf)
+        jstep = _steps(segment_origins(motion))  # (F-1, S)
+        mstep = _steps(points)  # (F-1, M), NaN unless seen in both frames
+        np.copyto(mstep, -np.inf, where=~np.isfinite(mstep))
+        any_m = mstep.max(1) if mstep.size else np.full(F - 1, -np.inf)
         seg_max = np.full((F - 1, S), -np.inf)
         for s in range(S):
             cols = np.flatnonzero(seg == s)
             if cols.size:
-                seg_max[:, s] = np.where(np.isfinite(mstep[:, cols]), mstep[:, cols], -np.inf).max(1)
+                seg_max[:, s] = mstep[:, cols].max(1)
+        del mstep
         # local rotation steps
         R = motion.rot
         rel = np.empty((F - 1, S))
@@ -247,6 +247,23 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
         jn = _joint_name(names, parent, s)
         out.append(Finding("not_converged", jn, f"joint {jn}: the centre fit did not converge ({note})"))
     return out
+
+
+def _steps(x: np.ndarray, block: int = 8192) -> np.ndarray:
+    """(F-1, K) length of every frame-to-frame step of ``x`` (F, K, 3), NaN where either end is NaN:
+    ``np.linalg.norm(np.diff(x, axis=0), axis=-1)`` to the bit (its sum order, (dx² + dy²) + dz²),
+    a block of frames at a time (the differences of a whole long take are large)."""
+    F, K = x.shape[:2]
+    out = np.empty((max(F - 1, 0), K))
+    for lo in range(1, F, block):
+        hi = min(F, lo + block)
+        with np.errstate(invalid="ignore"):
+            d = np.subtract(x[lo:hi], x[lo - 1 : hi - 1])
+        d *= d
+        o = out[lo - 1 : hi - 1]
+        np.add(d[..., 0], d[..., 1], out=o)
+        o += d[..., 2]
+    return np.sqrt(out, out=out)
 
 
 def _limb_asymmetry(motion: Motion, tol: float, naming) -> list[Finding]:

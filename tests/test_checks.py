@@ -383,3 +383,18 @@ def test_unlike_limb_bones_counts_the_like_limbs_bones_a_fifth_apart(human_fit) 
     bad = _moved(motion, knee, 0.3 * (sk.origin[hip] - sk.origin[knee]))
     assert unlike_limb_bones(bad.skeleton) == 2  # the thigh, and the shank below it grown by as much
     assert _names(checks.run_checks(bad, markers_of(motion).points), "limb_asymmetry")
+
+
+def test_step_lengths_are_numpys_norm_of_the_differences_to_the_bit():
+    """The checks' frame-to-frame steps, a block of frames at a time, against ``np.linalg.norm(np.diff(x))``."""
+    from mocapskel.checks import _steps
+
+    rng = np.random.default_rng(1)
+    for F in (1, 2, 3, 100, 5000):
+        x = rng.normal(0, 500, (F, 7, 3))
+        x[rng.random((F, 7)) < 0.1] = np.nan
+        with np.errstate(invalid="ignore"):
+            ref = np.linalg.norm(np.diff(x, axis=0), axis=-1)
+        got = _steps(x, block=37)
+        assert got.shape == ref.shape
+        np.testing.assert_array_equal(got, ref)
