@@ -168,4 +168,7 @@ def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:
     topo_edges = skel.joints.topology.edges
     child_to_e = {int(b): e for e, (a, b) in enumerate(topo_edges)}
     kids = np.flatnonzero(skel.parent >= 0)
-    return centres[:, [child_to_e[int(k)] for k in kids]]
+    order = [child_to_e[int(k)] for k in kids]
+    if order == list(range(centres.shape[1])):  # already in that order (a copy of a whole take saved)
+        return centres
+    return centres[:, order]
