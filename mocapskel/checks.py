@@ -193,23 +193,17 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
                                    f"segments, more than half the subject's marker extent ({extent:.0f} mm)"))
 
     if F >= 2:
-        pos = segment_origins(motion)  # (F, S, 3)
-        jstep = np.linalg.norm(np.diff(pos, axis=0), axis=-1)  # (F-1, S)
-        with np.errstate(invalid="ignore"):
-            mstep = np.linalg.norm(np.diff(points, axis=0), axis=-1)  # (F-1, M), NaN unless seen in both
-        any_m = np.where(np.isfinite(mstep), mstep, -np.inf).max(1) if mstep.size else np.full(F - 1, -np.inf)
+        jstep = _steps(segment_origins(motion))  # (F-1, S)
+        mstep = _steps(points)  # (F-1, M), NaN unless seen in both frames
+        np.copyto(mstep, -np.inf, where=~np.isfinite(mstep))
+        any_m = mstep.max(1) if mstep.size else np.full(F - 1, -np.inf)
         seg_max = np.full((F - 1, S), -np.inf)
         for s in range(S):
             cols = np.flatnonzero(seg == s)
             if cols.size:
-                seg_max[:, s] = np.where(np.isfinite(mstep[:, cols]), mstep[:, cols], -np.inf).max(1)
-        # local rotation steps
-        R = motion.rot
-        rel = np.empty((F - 1, S))
-        for s in range(S):
-            Ls = R[:, s] if parent[s] < 0 else np.swapaxes(R[:, parent[s]], -1, -2) @ R[:, s]
-            c = (np.einsum("fij,fij->f", Ls[1:], Ls[:-1]) - 1.0) / 2.0
-            rel[:, s] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+                seg_max[:, s] = mstep[:, cols].max(1)
+        del mstep
+        rel = _joint_turns(motion.rot, parent)  # (F-1, S) degrees
         for s in range(S):
             both = seg_max[:, s] if parent[s] < 0 else np.maximum(seg_max[:, s], seg_max[:, parent[s]])
             fastest = np.where(np.isfinite(both), both, any_m)  # the joint's own segments (for flips)
@@ -247,6 +241,54 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
         jn = _joint_name(names, parent, s)
         out.append(Finding("not_converged", jn, f"joint {jn}: the centre fit did not converge ({note})"))
     return out
+
+
+def _joint_turns(R: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """(F-1, S) angle (degrees) by which every joint's rotation relative to its parent (a root's: to the
+    lab) turns from one frame to the next, from ``R`` (F, S, 3, 3) global rotations.
+
+    On component planes, frames innermost: the products ``P^T G`` written out entry by entry (a
+    batched ``@`` of 3x3 matrices over a long take is several times slower)."""
+    F, S = R.shape[:2]
+    rel = np.empty((max(F - 1, 0), S))
+    Rt = np.ascontiguousarray(np.moveaxis(R, 0, -1))  # (S, 3, 3, F)
+    L = np.empty((3, 3, F))
+    tmp = np.empty(F)
+    for s in range(S):
+        G = Rt[s]
+        if parent[s] < 0:
+            L[:] = G
+        else:
+            P = Rt[parent[s]]
+            for i in range(3):
+                for j in range(3):
+                    o = L[i, j]
+                    np.multiply(P[0, i], G[0, j], out=o)
+                    o += np.multiply(P[1, i], G[1, j], out=tmp)
+                    o += np.multiply(P[2, i], G[2, j], out=tmp)
+        Lf = L.reshape(9, F)
+        c = np.einsum("kf,kf->f", Lf[:, 1:], Lf[:, :-1])  # trace(L[f+1]^T L[f])
+        c -= 1.0
+        c /= 2.0
+        rel[:, s] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    return rel
+
+
+def _steps(x: np.ndarray, block: int = 8192) -> np.ndarray:
+    """(F-1, K) length of every frame-to-frame step of ``x`` (F, K, 3), NaN where either end is NaN:
+    ``np.linalg.norm(np.diff(x, axis=0), axis=-1)`` to the bit (its sum order, (dx² + dy²) + dz²),
+    a block of frames at a time (the differences of a whole long take are large)."""
+    F, K = x.shape[:2]
+    out = np.empty((max(F - 1, 0), K))
+    for lo in range(1, F, block):
+        hi = min(F, lo + block)
+        with np.errstate(invalid="ignore"):
+            d = np.subtract(x[lo:hi], x[lo - 1 : hi - 1])
+        d *= d
+        o = out[lo - 1 : hi - 1]
+        np.add(d[..., 0], d[..., 1], out=o)
+        o += d[..., 2]
+    return np.sqrt(out, out=out)
 
 
 def _limb_asymmetry(motion: Motion, tol: float, naming) -> list[Finding]:

@@ -383,3 +383,35 @@ def test_unlike_limb_bones_counts_the_like_limbs_bones_a_fifth_apart(human_fit) 
     bad = _moved(motion, knee, 0.3 * (sk.origin[hip] - sk.origin[knee]))
     assert unlike_limb_bones(bad.skeleton) == 2  # the thigh, and the shank below it grown by as much
     assert _names(checks.run_checks(bad, markers_of(motion).points), "limb_asymmetry")
+
+
+def test_step_lengths_are_numpys_norm_of_the_differences_to_the_bit():
+    """The checks' frame-to-frame steps, a block of frames at a time, against ``np.linalg.norm(np.diff(x))``."""
+    from mocapskel.checks import _steps
+
+    rng = np.random.default_rng(1)
+    for F in (1, 2, 3, 100, 5000):
+        x = rng.normal(0, 500, (F, 7, 3))
+        x[rng.random((F, 7)) < 0.1] = np.nan
+        with np.errstate(invalid="ignore"):
+            ref = np.linalg.norm(np.diff(x, axis=0), axis=-1)
+        got = _steps(x, block=37)
+        assert got.shape == ref.shape
+        np.testing.assert_array_equal(got, ref)
+
+
+def test_joint_turns_are_the_angles_of_the_relative_rotations_steps():
+    """The rotation_flip check's per-frame turn of every joint against the angle of ``L[f]^T L[f+1]``,
+    ``L = G[parent]^T G`` formed with scipy's rotations."""
+    from scipy.spatial.transform import Rotation
+
+    from mocapskel.checks import _joint_turns
+
+    rng = np.random.default_rng(4)
+    F, parent = 50, np.array([-1, 0, 1, 1])
+    G = Rotation.from_rotvec(rng.normal(0, 1.2, (F * 4, 3))).as_matrix().reshape(F, 4, 3, 3)
+    got = _joint_turns(G, parent)
+    for s, p in enumerate(parent):
+        L = Rotation.from_matrix(G[:, s]) if p < 0 else Rotation.from_matrix(G[:, p]).inv() * Rotation.from_matrix(G[:, s])
+        want = np.degrees((L[:-1].inv() * L[1:]).magnitude())
+        np.testing.assert_allclose(got[:, s], want, atol=1e-6)

@@ -313,3 +313,27 @@ def test_a_fast_swing_on_a_smooth_path_is_no_jump_and_a_jump_in_it_is(seed):
         P, rate = _swing(seed, (first, n))
         found = set(np.flatnonzero(clean.find_jumps(P, rate)[:, 0]).tolist())
         assert set(range(first, first + n)) <= found <= set(range(first - 1, first + n + 1))
+
+
+def test_grown_runs_are_scipys_binary_propagation_along_time():
+    """The jumps' growth through their soft neighbours (runs of the mask along time that hold a seed, those over
+    ``max_len`` frames left out) against scipy's binary propagation with a time-only structure, on random masks."""
+    from scipy import ndimage
+
+    from mocapskel.solvers.merge_jumps import grow_runs, runs_of
+
+    rng = np.random.default_rng(5)
+    vert = np.zeros((3, 3), dtype=bool)
+    vert[:, 1] = True
+    for _ in range(200):
+        F, L = int(rng.integers(1, 90)), int(rng.integers(1, 7))
+        mask = rng.random((F, L)) < rng.random()
+        seed = mask & (rng.random((F, L)) < 0.15)
+        max_len = int(rng.integers(1, 25))
+        ref = ndimage.binary_propagation(seed, structure=vert, mask=mask)
+        np.testing.assert_array_equal(grow_runs(seed, mask), ref)
+        col, a, b = runs_of(ref)
+        for c, x, y in zip(col, a, b):
+            if y - x > max_len:
+                ref[x:y, c] = False
+        np.testing.assert_array_equal(grow_runs(seed, mask, max_len), ref)

@@ -154,25 +154,10 @@ def test_engines_agree_on_written_file(tmp_path: Path) -> None:
     m = random_markers(rng, F=64, M=5, gaps=0.2)
     out = tmp_path / "t.c3d"
     write_c3d(out, m)
-    a, b = read_c3d(out), read_c3d(out, engine="numpy")
+    a, b = read_c3d(out, engine="ezc3d"), read_c3d(out)
     np.testing.assert_array_equal(a.points, b.points)
     assert a.labels == b.labels and a.rate == b.rate
-    assert a.info["engine"] == "ezc3d"  # the default for a file of ordinary size
-
-
-def test_auto_engine_reads_large_files_with_numpy(tmp_path: Path, monkeypatch) -> None:
-    from mocapskel.io import c3d as c3d_mod
-
-    rng = np.random.default_rng(14)
-    m = random_markers(rng, F=50, M=4, gaps=0.1)
-    out = tmp_path / "t.c3d"
-    write_c3d(out, m)
-    monkeypatch.setattr(c3d_mod, "EZC3D_MAX_SAMPLES", 199)  # 50 frames x 4 points = 200 samples: "large"
-    big = read_c3d(out)
-    assert big.info["engine"] == "numpy"
-    np.testing.assert_array_equal(big.points, read_c3d(out, engine="ezc3d").points)
-    monkeypatch.setattr(c3d_mod, "EZC3D_MAX_SAMPLES", 200)
-    assert read_c3d(out).info["engine"] == "ezc3d"
+    assert a.info["engine"] == "ezc3d" and b.info["engine"] == "numpy"  # numpy is the default
 
 
 def test_write_leaves_no_temporary_file_and_keeps_old_file_on_failure(tmp_path: Path) -> None:
@@ -360,6 +345,7 @@ def test_scale_and_processor_types_match_ezc3d(tmp_path: Path, processor: str, s
     assert a.labels == ["A", "B", "C", "D"]
     assert b.info["processor"] == processor and b.info["storage"] == storage
     assert a.info["engine"] == ("numpy" if processor == "mips" else "ezc3d")  # ezc3d 1.7 refuses MIPS files
+    assert read_c3d(f).info["engine"] == "numpy"  # the default
 
 
 # --------------------------------------------------------------------------- bad input
@@ -483,7 +469,7 @@ def test_ezc3d_itself_reads_negative_residuals_as_nan(tmp_path: Path, storage: s
     pts = swig.c3d(str(f)).get_points()[:3].transpose(2, 1, 0)
     assert np.isnan(pts[2, 1]).all()
     assert np.isfinite(np.delete(pts.reshape(-1, 3), 2 * 2 + 1, axis=0)).all()
-    assert np.isnan(read_c3d(f).points[2, 1]).all()
+    assert np.isnan(read_c3d(f, engine="ezc3d").points[2, 1]).all()
 
 
 def test_fit_without_cache_does_not_hash_the_take(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

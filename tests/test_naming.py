@@ -177,3 +177,13 @@ def test_a_fitted_root_in_a_limb_gives_the_same_humanoid_bvh(fitted) -> None:
     assert np.allclose(b1.skeleton.offset, b0.skeleton.offset, atol=1e-9)
     assert np.allclose(b1.root_pos, b0.root_pos, atol=1e-9)
     assert np.allclose(b1.local_rot, b0.local_rot, atol=1e-9)
+
+
+def test_one_segment_origin_is_the_column_of_all_of_them(fitted) -> None:
+    """The export's root origin from its path alone (re-rooting) is :func:`segment_origins`' column, to the bit."""
+    from mocapskel.model.kinematics import segment_origin, segment_origins
+
+    m = fitted[1].motion
+    O = segment_origins(m)
+    for s in range(O.shape[1]):
+        np.testing.assert_array_equal(segment_origin(m, s), O[:, s])

@@ -370,3 +370,22 @@ def test_rotvec_and_quaternion_conversions_match_scipy() -> None:
     noisy = R + rng.normal(0, 1e-7, R.shape)  # nearly orthonormal
     np.testing.assert_allclose(matrix_to_rotvec(noisy)[away], Rotation.from_matrix(noisy).as_rotvec()[away], atol=1e-6)
     np.testing.assert_allclose(rotvec_to_matrix(matrix_to_rotvec(noisy)), Rotation.from_matrix(noisy).as_matrix(), atol=1e-6)
+
+
+def test_fill_joint_slerps_the_joint_angle_of_the_whole_track():
+    """A segment's gaps filled from the joint's rotation at the gaps' ends only are what slerping the joint's
+    rotation over the whole track gives (the parent's rotation composed with it), and valid frames are kept."""
+    from mocapskel.solvers.rotations import fill_joint, rotvec_to_matrix, slerp_fill
+
+    rng = np.random.default_rng(8)
+    F = 400
+    parent = rotvec_to_matrix(np.cumsum(rng.normal(0, 0.05, (F, 3)), axis=0))
+    rot = rotvec_to_matrix(np.cumsum(rng.normal(0, 0.05, (F, 3)), axis=0))
+    valid = rng.random(F) > 0.3
+    valid[:5] = False  # a leading gap, held
+    valid[-3:] = False  # a trailing gap, held
+    rel = slerp_fill(np.swapaxes(parent, -1, -2) @ rot, valid)
+    expected = np.where(valid[:, None, None], rot, parent @ rel)
+    got = fill_joint(parent, np.where(valid[:, None, None], rot, np.nan), valid)
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    np.testing.assert_array_equal(got[valid], rot[valid])

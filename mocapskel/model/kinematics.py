@@ -7,6 +7,19 @@ from ..artifacts import Motion
 from .tree import depth_first_order
 
 
+def segment_origin(motion: Motion, s: int) -> np.ndarray:
+    """(F, 3) lab position (mm) of segment ``s``'s origin: :func:`segment_origins`' column ``s``, to the
+    bit, from the segments on the path from the root to ``s`` alone."""
+    sk = motion.skeleton
+    path = [int(s)]
+    while sk.parent[path[-1]] >= 0:
+        path.append(int(sk.parent[path[-1]]))
+    pos = np.array(motion.root_pos, dtype=np.float64)
+    for p, c in zip(path[::-1], path[-2::-1]):  # parent, child: root first
+        pos = pos + np.einsum("fij,j->fi", motion.rot[:, p], sk.offset[c])
+    return pos
+
+
 def segment_origins(motion: Motion) -> np.ndarray:
     """(F, S, 3) lab position (mm) of every segment origin; a child's origin is its joint with the parent."""
     sk = motion.skeleton

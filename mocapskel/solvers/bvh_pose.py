@@ -160,7 +160,9 @@ def global_to_local_rot(parent: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """
     parent = np.asarray(parent, dtype=np.int64)
     rot = np.asarray(rot, dtype=np.float64)
-    local = np.copy(rot)  # order "K": the layout of rot
+    local = np.empty_like(rot)  # order "K": the layout of rot; every entry is written below
+    root = np.flatnonzero(parent < 0)
+    local[:, root] = rot[:, root]
     tmp = np.empty(rot.shape[0])
     for s in np.flatnonzero(parent >= 0):
         G, P = rot[:, s], rot[:, parent[s]]

@@ -261,17 +261,32 @@ def rigid_jumps(
     hard, soft = rigid_outliers(points, vis, mean, std, partner, jump_mm=jump_mm)
     jumps = hard.copy()
     if hard.any():  # grow every hard sample along time through the soft samples next to it
-        from scipy import ndimage  # (importing it costs a tenth of a second)
-
-        vert = np.zeros((3, 3), dtype=bool)
-        vert[:, 1] = True
-        jumps = ndimage.binary_propagation(hard, structure=vert, mask=soft | hard)
-        col, s0, s1 = runs_of(jumps)
-        long = (s1 - s0) > max_len
-        for c_, a_, b_ in zip(col[long], s0[long], s1[long]):
-            jumps[a_:b_, c_] = False
+        jumps = grow_runs(hard, soft | hard, max_len)
     jumps |= rigid_steps(points, vis, partner, step_mm=step_mm, max_len=max_len)
     return jumps, soft
+
+
+def grow_runs(seed: np.ndarray, mask: np.ndarray, max_len: int | None = None) -> np.ndarray:
+    """(F, L) bool: the runs of ``mask`` along time (per column) that hold a ``seed`` sample, those
+    longer than ``max_len`` frames left out (``seed`` must lie in ``mask``).
+
+    What ``scipy.ndimage.binary_propagation(seed, structure=<time only>, mask=mask)`` gives, from the
+    runs' bounds and a running count of the seeds (importing ``scipy.ndimage`` costs a fifth of a
+    second, more than the whole search on a long take)."""
+    out = np.zeros(mask.shape, dtype=bool)
+    col, s0, s1 = runs_of(mask)
+    if not col.size:
+        return out
+    cs = np.zeros((mask.shape[0] + 1, mask.shape[1]), dtype=np.int64)
+    np.cumsum(seed, axis=0, out=cs[1:])
+    keep = cs[s1, col] > cs[s0, col]
+    if max_len is not None:
+        keep &= (s1 - s0) <= max_len
+    edge = np.zeros(cs.shape, dtype=np.int8)  # +1 where a kept run starts, -1 after it ends
+    np.add.at(edge, (s0[keep], col[keep]), 1)
+    np.add.at(edge, (s1[keep], col[keep]), -1)
+    out[:] = np.cumsum(edge[:-1], axis=0, dtype=np.int8) > 0
+    return out
 
 
 def judged_by_partners(vis: np.ndarray, partner: np.ndarray, least: int = 2) -> np.ndarray:

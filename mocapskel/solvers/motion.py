@@ -49,7 +49,7 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
     root_pos = np.full((F, 3), np.nan)
     never = ~ok.any(0)
     rot[:, never] = np.eye(3)
-    rot = slerp_fill_joints(skel.parent, rot, ok | never)
+    rot = slerp_fill_joints(skel.parent, rot, ok | never, copy=False)
     if ok[:, root].any():
         fr = np.flatnonzero(ok[:, root])
         p = np.einsum("fij,j->fi", rot[:, root], skel.origin[root]) + t[:, root]
@@ -116,7 +116,7 @@ def solve(
                                              max_run=max(2, int(round(0.5 * rate))) if rate and rate > 0 else 60)
     # stretches where nothing of a limb is seen: its joints keep their angles (slerped across, held at the ends)
     sseen = segments_seen(skel.marker_segment, len(skel.parent), points)
-    rot = hold_unobserved(skel.parent, rot, sseen)
+    rot = hold_unobserved(skel.parent, rot, sseen, copy=False)
     # out of view while something else is seen (frames where nothing is, held below, are not counted)
     observed = observed_below(skel.parent, sseen) | ~sseen.any(axis=1, keepdims=True)
     out_of_view = (~observed).sum(0)
@@ -168,4 +168,7 @@ def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:
     topo_edges = skel.joints.topology.edges
     child_to_e = {int(b): e for e, (a, b) in enumerate(topo_edges)}
     kids = np.flatnonzero(skel.parent >= 0)
-    return centres[:, [child_to_e[int(k)] for k in kids]]
+    order = [child_to_e[int(k)] for k in kids]
+    if order == list(range(centres.shape[1])):  # already in that order (a copy of a whole take saved)
+        return centres
+    return centres[:, order]

@@ -485,7 +485,7 @@ def _parents_first(parent: np.ndarray) -> np.ndarray:
     return np.argsort(depth, kind="stable")
 
 
-def slerp_fill_joints(parent: np.ndarray, rot: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def slerp_fill_joints(parent: np.ndarray, rot: np.ndarray, valid: np.ndarray, *, copy: bool = True) -> np.ndarray:
     """Fill a tree's rotation tracks where they are not valid, as joint angles.
 
     Where segment ``s`` is not valid, its rotation relative to its parent
@@ -505,19 +505,23 @@ def slerp_fill_joints(parent: np.ndarray, rot: np.ndarray, valid: np.ndarray) ->
     rot : (F, S, 3, 3) array_like
         Segment rotations in the lab frame; only valid ones are read.
     valid : (F, S) array_like of bool
+    copy : bool
+        False: fill ``rot`` itself when it is a float64 array (a whole take's rotations are large).
 
     Returns
     -------
     (F, S, 3, 3) ndarray
-        A new array.
+        A new array, or ``rot`` itself (``copy=False``).
     """
     parent = np.asarray(parent, dtype=int)
-    R = np.array(rot, dtype=np.float64)
+    R = np.array(rot, dtype=np.float64) if copy else np.asarray(rot, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
     S = len(parent)
     if R.ndim != 4 or R.shape[1:] != (S, 3, 3) or valid.shape != R.shape[:2]:
         raise ValueError(f"need rot (F, {S}, 3, 3) and valid (F, {S}), got {R.shape} and {valid.shape}")
     for s in _parents_first(parent):
+        if valid[:, s].all():  # nothing to fill
+            continue
         p = int(parent[s])
         R[:, s] = fill_joint(R[:, p] if p >= 0 else None, R[:, s], valid[:, s])
     return R
@@ -538,12 +542,17 @@ def fill_joint(parent_rot: np.ndarray | None, rot: np.ndarray, valid: np.ndarray
         return np.array(parent_rot, dtype=np.float64) if parent_rot is not None else np.tile(np.eye(3), (len(R), 1, 1))
     if parent_rot is None:
         return slerp_fill(R, valid)
-    rel = slerp_fill(np.swapaxes(parent_rot, -1, -2) @ R, valid)
-    R[~valid] = parent_rot[~valid] @ rel[~valid]
+    # the joint's rotation is read at the valid frames next to a gap only (slerp_fill's ends)
+    gap = ~valid
+    ends = valid & (np.r_[gap[1:], False] | np.r_[False, gap[:-1]])
+    rel = np.zeros(R.shape)
+    rel[ends] = np.swapaxes(parent_rot[ends], -1, -2) @ R[ends]
+    rel = slerp_fill(rel, valid)
+    R[gap] = parent_rot[gap] @ rel[gap]
     return R
 
 
-def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray) -> np.ndarray:
+def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray, *, copy: bool = True) -> np.ndarray:
     """Rotations of a tree's unobserved stretches, filled as joint angles.
 
     A segment is observed in a frame when a marker of it or of any segment
@@ -560,11 +569,13 @@ def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray) -> np
         Segment rotations in the lab frame.
     seen : (F, S) array_like of bool
         Whether any marker of the segment itself is seen in the frame.
+    copy : bool
+        False: fill ``rot`` itself (see :func:`slerp_fill_joints`).
 
     Returns
     -------
     (F, S, 3, 3) ndarray
-        A new array.
+        A new array, or ``rot`` itself (``copy=False``).
     """
     parent = np.asarray(parent, dtype=int)
     if np.shape(seen) != np.shape(rot)[:2] or np.shape(seen)[1:] != parent.shape:
@@ -572,7 +583,7 @@ def hold_unobserved(parent: np.ndarray, rot: np.ndarray, seen: np.ndarray) -> np
     observed = observed_below(parent, seen)
     never = ~observed.any(0)
     observed[:, never | (parent < 0)] = True  # left as they are
-    return slerp_fill_joints(parent, rot, observed)
+    return slerp_fill_joints(parent, rot, observed, copy=copy)
 
 
 def observed_below(parent: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -597,6 +608,8 @@ def segments_seen(marker_segment: np.ndarray, n_segments: int, points: np.ndarra
     """
     seen = np.zeros((points.shape[0], int(n_segments)), dtype=bool)
     seg = np.asarray(marker_segment)[: points.shape[1]]
-    on = np.flatnonzero(seg >= 0)
-    np.logical_or.at(seen.T, seg[on], np.isfinite(points[:, on]).all(-1).T)
+    # one pass per coordinate (a reduction over a last axis of 3 is several times slower)
+    vis = np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
+    for s in np.unique(seg[seg >= 0]):
+        np.any(vis[:, seg == s], axis=1, out=seen[:, s])
     return seen

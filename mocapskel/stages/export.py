@@ -209,12 +209,12 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     rot = motion.rot
     root = naming.root
     # the root joint's world position: a point fixed in the root segment
-    from ..model.kinematics import segment_origins
+    from ..model.kinematics import segment_origin
 
     if np.array_equal(parent, old_parent) and np.allclose(r[root], sk.origin[root]):
         root_world = motion.root_pos
     else:
-        o = segment_origins(motion)[:, root]
+        o = segment_origin(motion, root)
         root_world = o + np.einsum("fij,j->fi", rot[:, root], r[root] - sk.origin[root])
     offset_lab = r.copy()
     has = parent >= 0
