@@ -1,10 +1,12 @@
-"""Euler channels that step no more than the rotation turns, and the measure of it.
+"""Euler spikes: rotation channels that step by more than the rotation turns.
 
 A BVH curve editor or a resampling importer interpolates each rotation channel
 on its own. Where a channel steps by much more than the joint turns between two
-frames (near gimbal lock, where the first and third angles are ill-determined
-individually), the interpolated pose spins the limb. :func:`euler_spikes` finds
-such steps.
+frames (near gimbal lock the outer angles turn about ``1 / cos b`` times faster
+than the joint, for either exact Euler solution), the interpolated pose spins
+the limb. :func:`euler_spikes` finds such steps in written channels;
+:func:`order_spike_counts` counts them for every rotation order before writing,
+so that the writer can take the order with the fewest.
 """
 from __future__ import annotations
 
