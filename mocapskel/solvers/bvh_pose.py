@@ -8,6 +8,7 @@ from typing import Literal, overload
 import numpy as np
 
 from .rotations import ORDERS, _parse_order
+from .euler_continuity import order_spike_counts
 
 
 #: Length of one output unit in mm (mocapskel's internal unit).
@@ -360,12 +361,14 @@ def near_lock_counts(local_rot: np.ndarray, within_deg: float = 20.0) -> np.ndar
 
 def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0,
                           near_deg: float = 20.0) -> str:
-    """One rotation order for every joint of a take, far from gimbal lock.
+    """One rotation order for every joint of a take, with the fewest Euler spikes.
 
-    ``preferred`` when every joint stays at least ``min_margin_deg`` from lock
-    in it (the Euler angles then turn at most twice as fast as the rotation).
-    Otherwise the order with the fewest joint-frames within ``near_deg`` of
-    lock (:func:`near_lock_counts`: where spikes can appear), and among those
+    The order whose channels step more than the joints turn plus a few degrees
+    (:func:`~mocapskel.solvers.euler_continuity.order_spike_counts`) at the
+    fewest joint-frames; among those ``preferred`` when every joint stays at
+    least ``min_margin_deg`` from gimbal lock in it (the Euler angles then turn
+    at most twice as fast as the rotation), else the one with the fewest
+    joint-frames within ``near_deg`` of lock (:func:`near_lock_counts`), then
     the one whose closest joint stays farthest from lock, ``preferred`` first
     among equals. See :func:`gimbal_margin`.
     """
@@ -375,11 +378,16 @@ def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_mar
     if R.shape[0] == 0 or R.shape[1] == 0:
         return pref
     worst = gimbal_margin(R).min(axis=0)
-    if worst[ORDERS.index(pref)] >= min_margin_deg:
-        return pref
+    spikes = order_spike_counts(R)
     near = near_lock_counts(R, near_deg)
+    p = ORDERS.index(pref)
     cands = [pref] + [o for o in ORDERS if o != pref]
-    return min(cands, key=lambda o: (near[ORDERS.index(o)], -worst[ORDERS.index(o)]))
+
+    def key(o: str) -> tuple:
+        n = ORDERS.index(o)
+        return (spikes[n], not (n == p and worst[n] >= min_margin_deg), near[n], -worst[n])
+
+    return min(cands, key=key)
 
 
 _CACHE_FRAMES = 512  # frames per block of a transposing copy (see _transpose_blocks)

@@ -28,7 +28,7 @@ from ..model.tree import depth_first_order
 from ..model.naming import SCHEMES, Naming, name_skeleton
 from ..solvers.rotations import rotation_between
 
-VERSION = 4
+VERSION = 5
 
 UPS = ("y", "z")
 UNITS = ("cm", "mm", "m")
@@ -41,9 +41,10 @@ class Params:
     up: str = "y"
     units: str = "cm"
     order: str = "auto"
-    """Rotation channel order of every joint; "auto": ZXY unless some joint comes within
-    30 degrees of gimbal lock in it, then the order that keeps joints farthest from lock
-    (:func:`~mocapskel.solvers.bvh_pose.choose_rotation_order`)."""
+    """Rotation channel order of every joint; "auto": the order with the fewest Euler spikes
+    (channel steps beyond the joint's turn plus 5 degrees), ZXY among equals unless some joint
+    comes within 30 degrees of gimbal lock in it, then the order that keeps joints farthest from
+    lock (:func:`~mocapskel.solvers.bvh_pose.choose_rotation_order`)."""
     names: str = "auto"
     rest: str = "frame"
 
