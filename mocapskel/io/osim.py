@@ -5,7 +5,7 @@ follows OpenSim 4's schema (``OpenSimDocument Version="40000"``): a BodySet, a J
 joints own their two PhysicalOffsetFrames, a MarkerSet; metres, gravity along minus the up axis.
 The .mot is an OpenSim Storage file (``inDegrees=yes``, a ``time`` column, one column per
 coordinate named as in the model); the .trc holds the markers the fit used, in the model's axes
-(mm; OpenSim converts by the header's ``Units``), under the model's marker names. What is in the
+(mm; OpenSim converts by the header's ``Units``), under the model's marker names, gaps as ``NaN``. What is in the
 model and why: :mod:`mocapskel.solvers.osim_model`.
 """
 from __future__ import annotations
@@ -111,7 +111,7 @@ def write_osim_trc(path: str | os.PathLike, model: OsimModel, points: np.ndarray
     """Write the markers ``points`` (F, M, 3; lab, mm, one column per skeleton label) that the model
     carries as a TRC in the model's axes and names."""
     pts = np.asarray(points, dtype=np.float64)[:, model.marker_index] @ model.axes.T
-    write_trc(path, Markers(points=pts, labels=model.markers, rate=float(rate), units="mm", source=source))
+    write_trc(path, Markers(points=pts, labels=model.markers, rate=float(rate), units="mm", source=source), missing="NaN")
 
 
 def osim_companions(path: str | os.PathLike) -> tuple[str, str]:
