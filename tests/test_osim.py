@@ -298,3 +298,114 @@ def test_ball_joint_coordinates_are_body_fixed_xyz() -> None:
     R = b.getTransformInGround(s).R()
     got = np.array([[R.get(i, k) for k in range(3)] for i in range(3)])
     assert np.allclose(got, euler_to_matrix(np.degrees(q), "XYZ"), atol=1e-12)
+
+
+def _cli(*args: str):
+    return CliRunner().invoke(cli, list(args), catch_exceptions=False)
+
+
+def test_fit_osim_out_writes_model_markers_and_motion(hinge_take, tmp_path: Path) -> None:
+    """The command line: --osim-out x.osim writes x.osim, x.trc and x.mot; labels OpenSim refuses
+    (spaces, colons) are renamed alike in the model and the TRC; the report lists the joints."""
+    import json
+
+    from mocapskel.artifacts import Markers
+    from mocapskel.io.markers import read_markers
+    from mocapskel.io.trc import read_trc
+
+    take, _ = hinge_take
+    odd = ["L Knee", "Sub:LKNE", "1ST"] + list(take.markers.labels[3:])
+    src = tmp_path / "odd.trc"
+    m = take.markers
+    write_trc(src, Markers(points=m.points, labels=tuple(odd), rate=m.rate, units="mm"))
+    # the TRC writer turns whitespace into "_", the reader drops a "Subject:" namespace: the labels as read
+    read = list(read_markers(src).labels)
+    out = tmp_path / "subject.osim"
+    res = _cli("fit", str(src), "-o", str(tmp_path / "s.bvh"), "--osim-out", str(out), "--report", str(tmp_path / "s.json"), "--no-cache")
+    assert res.exit_code == 0, res.output
+    trc, mot = osim_companions(out)
+    assert Path(trc).exists() and Path(mot).exists()
+    rep = json.loads((tmp_path / "s.json").read_text())
+    assert rep["outputs"]["osim"] == str(out)
+    assert [j["type"] for j in rep["osim"]["joints"]].count("PinJoint") == 3
+    text = out.read_text()
+    names = osim_names(read)
+    assert names[:3] == ["L_Knee", "LKNE", "1ST"]
+    for n in names:
+        assert f'<Marker name="{n}">' in text
+    back = read_trc(trc)
+    assert list(back.labels) == names  # the TRC's markers are the model's
+    head = Path(mot).read_text().splitlines()[:7]
+    assert "inDegrees=yes" in head and head[6].split("\t")[0] == "time"
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed: the names are not checked in OpenSim")
+    model = osim.Model(str(out))
+    model.initSystem()
+    assert {model.getMarkerSet().get(i).getName() for i in range(model.getMarkerSet().getSize())} == set(names)
+    table = osim.TimeSeriesTable(str(mot))
+    cs = model.getCoordinateSet()
+    assert sorted(table.getColumnLabels()) == sorted(cs.get(i).getName() for i in range(cs.getSize()))
+
+
+def test_labels_opensim_refuses_are_renamed(hinge_take, tmp_path: Path) -> None:
+    """Labels with spaces, colons and a leading digit (as a take in memory may carry them) make a
+    model OpenSim loads, whose IK reads the TRC written beside it."""
+    from dataclasses import replace
+
+    osim = _opensim()
+    take, _ = hinge_take
+    m = take.markers
+    odd = ("L Knee", "Sub:LKNE", "1ST") + tuple(m.labels[3:])
+    res, model, path = _fit(replace(m, points=m.points[:150], labels=odd), tmp_path)
+    assert list(model.markers[:3]) == ["L_Knee", "Sub_LKNE", "1ST"]
+    _checks(osim, path)
+    _, rms = _ik(osim, path, Path(osim_companions(path)[0]), 0.0, 1.0, tmp_path)
+    assert rms < 1.0
+
+
+def test_osim_out_errors(hinge_take, tmp_path: Path) -> None:
+    """Bad --osim-out paths are usage errors (exit 2) before anything is fitted or written; the model
+    and its two companions never overwrite the input."""
+    _, src = hinge_take
+    bvh = tmp_path / "s.bvh"
+    for bad, what in ((tmp_path / "nowhere" / "x.osim", "does not exist"), (tmp_path / "x.txt", "should end in .osim"),
+                      (src.with_suffix(".osim"), "is the input")):
+        res = _cli("fit", str(src), "-o", str(bvh), "--osim-out", str(bad), "--no-cache")
+        assert res.exit_code == 2, res.output
+        assert what in res.output and "Traceback" not in res.output
+        assert not bvh.exists()
+
+
+def test_one_segment_skeleton_has_no_osim_model(hinge_take, tmp_path: Path) -> None:
+    """A skeleton of one segment has no joint: 'solve --osim-out' says so, exit 4, nothing written."""
+    import json
+
+    _, src = hinge_take
+    skel = tmp_path / "s.skel"
+    assert _cli("fit", str(src), "-o", str(tmp_path / "s.bvh"), "--skeleton-out", str(skel), "--no-cache").exit_code == 0
+    doc = json.loads(skel.read_text())
+    root = next(s for s in doc["segments"] if s["parent"] is None)
+    doc["segments"] = [root]
+    doc["markers"] = [m for m in doc["markers"] if m["segment"] == root["name"]]
+    skel.write_text(json.dumps(doc))
+    out = tmp_path / "one.osim"
+    res = _cli("solve", str(src), "--skeleton", str(skel), "-o", str(tmp_path / "one.bvh"), "--osim-out", str(out))
+    assert res.exit_code == 4, res.output
+    assert "one segment and no joint" in res.output
+    assert not any(p.exists() for p in (out, *map(Path, osim_companions(out)), tmp_path / "one.bvh"))
+
+
+def test_solve_osim_out(hinge_take, tmp_path: Path) -> None:
+    """'solve --osim-out' writes the model of the subject skeleton and the solved take's coordinates."""
+    _, src = hinge_take
+    skel = tmp_path / "s.skel"
+    assert _cli("fit", str(src), "-o", str(tmp_path / "s.bvh"), "--skeleton-out", str(skel), "--no-cache").exit_code == 0
+    out = tmp_path / "walk.osim"
+    res = _cli("solve", str(src), "--skeleton", str(skel), "-o", str(tmp_path / "w.bvh"), "--osim-out", str(out))
+    assert res.exit_code == 0, res.output
+    trc, mot = osim_companions(out)
+    rows = [l for l in Path(mot).read_text().splitlines()[7:] if l]
+    assert len(rows) == 400
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed: the model is not checked in OpenSim")
+    m = osim.Model(str(out))
+    m.initSystem()
+    assert m.getJointSet().getSize() == 4 and m.getMarkerSet().getSize() == 12
