@@ -36,7 +36,7 @@ from .rotations import matrix_to_euler, matrix_to_quat, rotation_between, rotvec
 #: Measured (``bench``-style, the off/turn ratio): generated hinge chains 0.002-0.011 (noise-free
 #: and 0.2 mm); every other joint of the generated ROM and of the shared real walks 0.07 or more
 #: (generated elbows and knees with soft tissue 0.07-0.14, real knees and elbows 0.11-0.13): a
-#: pin there would move markers by 4-9 mm, and the model would not replay the solved motion.
+#: pin there would move markers by 3.7-8.7 mm rms, and the model would not replay the solved motion.
 PIN_OFF_AXIS_SHARE = 0.02
 #: Nominal mass of every body (kg): markers say nothing of mass.
 NOMINAL_MASS_KG = 1.0
