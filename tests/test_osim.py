@@ -409,3 +409,32 @@ def test_solve_osim_out(hinge_take, tmp_path: Path) -> None:
     m = osim.Model(str(out))
     m.initSystem()
     assert m.getJointSet().getSize() == 4 and m.getMarkerSet().getSize() == 12
+
+
+def test_several_subjects_one_model_each(tmp_path: Path) -> None:
+    """Two subjects in one take: one model (and .trc, .mot) per subject, numbered like the BVH."""
+    from mocapskel.artifacts import Markers
+
+    a = hinge_chain([3, 3, 3, 3], 400, rng=np.random.default_rng(1), noise=0.2).markers
+    b = hinge_chain([3, 3, 3], 400, rng=np.random.default_rng(2), noise=0.2).markers
+    pts = np.concatenate([a.points, b.points + np.array([6000.0, 0.0, 0.0])], axis=1)
+    src = tmp_path / "two.trc"
+    write_trc(src, Markers(points=pts, labels=a.labels + tuple("B" + l for l in b.labels), rate=100.0))
+    res = _cli("fit", str(src), "-o", str(tmp_path / "two.bvh"), "--osim-out", str(tmp_path / "m.osim"), "--no-cache")
+    assert res.exit_code == 0, res.output
+    for i, n in ((1, 12), (2, 9)):
+        model = (tmp_path / f"m_{i}.osim").read_text()
+        assert model.count("<Marker ") == n
+        assert (tmp_path / f"m_{i}.trc").exists() and (tmp_path / f"m_{i}.mot").exists()
+
+
+def test_up_z_keeps_the_lab_axes(hinge_take, tmp_path: Path) -> None:
+    """With --up z the model is in the lab's axes (gravity along -Z) and still replays the fit."""
+    osim = _opensim()
+    _, src = hinge_take
+    res, model, path = _fit(src, tmp_path, up="z")
+    m, _ = _load(osim, path)
+    assert np.allclose(_vec(m.getGravity()), [0.0, 0.0, -9.80665])
+    got, _ = _play(osim, path, osim_companions(path)[1], range(0, 400, 10))
+    exp = _expected(res, model)[::10]
+    assert np.linalg.norm(got - exp, axis=2)[:, 0].max() < 1e-6  # the root body: the FreeJoint's translations
