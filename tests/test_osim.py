@@ -115,7 +115,7 @@ def _ik_positions(osim, path: Path, ik_mot: Path) -> tuple[np.ndarray, np.ndarra
 
 def _checks(osim, path: Path) -> None:
     """OpenSim's own checks: the document loads, the system builds, the default pose assembles, every
-    body has a positive mass and a valid inertia, every coordinate is free."""
+    body has a positive mass, a valid inertia and geometry to draw, every coordinate is free."""
     m, s = _load(osim, path)
     m.assemble(s)
     m.realizeAcceleration(s)  # dynamics with the nominal masses: finite accelerations
@@ -128,6 +128,8 @@ def _checks(osim, path: Path) -> None:
         I = b.getInertia().getMoments()
         x, y, z = I.get(0), I.get(1), I.get(2)
         assert min(x, y, z) > 0 and x + y >= z and y + z >= x and x + z >= y
+        geo = [b.get_attached_geometry(k).getConcreteClassName() for k in range(b.getPropertyByName("attached_geometry").size())]
+        assert geo[0] == "Sphere" and geo.count("LineGeometry") >= 1  # something for the visualiser to draw
     cs = m.getCoordinateSet()
     assert all(not cs.get(i).get_locked() for i in range(cs.getSize()))
 

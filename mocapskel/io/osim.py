@@ -24,6 +24,8 @@ from .trc import write_trc
 
 #: The schema version written: OpenSim 4.0's, which every 4.x reads.
 DOCUMENT_VERSION = "40000"
+#: Radius (m) of the sphere drawn at every body's origin (its joint): what the visualiser shows.
+JOINT_SPHERE_M = 0.015
 
 
 def _vec(v) -> str:
@@ -61,6 +63,15 @@ def model_xml(model: OsimModel) -> bytes:
         _sub(e, "mass", repr(float(b.mass)))
         _sub(e, "mass_center", _vec(b.mass_center))
         _sub(e, "inertia", _vec(b.inertia))
+        geo = _sub(e, "attached_geometry")  # drawn only: a sphere at the joint, a line along each bone
+        sph = _sub(geo, "Sphere", name=f"{b.name}_joint")
+        _sub(sph, "socket_frame", "..")
+        _sub(sph, "radius", repr(JOINT_SPHERE_M))
+        for k, end in enumerate(b.lines):
+            ln = _sub(geo, "LineGeometry", name=f"{b.name}_bone{k + 1}")
+            _sub(ln, "socket_frame", "..")
+            _sub(ln, "start_point", "0 0 0")
+            _sub(ln, "end_point", _vec(end))
     objs = _sub(_sub(m, "JointSet", name="jointset"), "objects")
     for j in model.joints:
         e = _sub(objs, j.kind, name=j.name)

@@ -81,6 +81,7 @@ class OsimBody:
     mass: float
     mass_center: np.ndarray  # (3,) m, body frame
     inertia: np.ndarray  # (6,) Ixx Iyy Izz Ixy Ixz Iyz about the mass centre, kg m^2
+    lines: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) m: bone lines drawn from the origin
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,7 +276,8 @@ def build_model(motion: Motion, naming: Naming | None = None, up: str = "y", nam
         else:
             bone = own.mean(axis=0) - r[s] if len(own) else np.zeros(3)
         mc, inertia = _inertia(M @ bone / 1000.0)
-        bodies.append(OsimBody(bnames[s], NOMINAL_MASS_KG, mc, inertia))
+        ends = (r[kids[s]] - r[s]) if len(kids[s]) else bone[None]
+        bodies.append(OsimBody(bnames[s], NOMINAL_MASS_KG, mc, inertia, lines=ends @ M.T / 1000.0))
         p = int(parent[s])
         if p < 0:
             Rm = M @ rot[:, s] @ M.T
