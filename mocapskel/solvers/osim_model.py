@@ -260,7 +260,7 @@ def build_model(motion: Motion, naming: Naming | None = None, up: str = "y", nam
     kids = [np.flatnonzero(parent == s) for s in range(S)]
     mseg = np.asarray(sk.marker_segment)
     mrest = origin[np.maximum(mseg, 0)] + np.asarray(sk.marker_local, dtype=np.float64)
-    bnames = osim_names([naming.names[s] for s in range(S)] + ["ground"])[:S]  # no body called ground
+    bnames = osim_names(["ground"] + [naming.names[s] for s in range(S)])[1:]  # no body called ground
     jraw = [f"ground_{bnames[s]}" if parent[s] < 0 else
             (naming.joint_names[s] if old[s] == parent[s] else naming.joint_names[parent[s]]) or f"{bnames[parent[s]]}_{bnames[s]}"
             for s in range(S)]
