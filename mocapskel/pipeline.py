@@ -203,7 +203,8 @@ class FitResult:
     """The outcome of :func:`fit`: the solved motion, its BVH form and the report.
 
     ``subjects``: when the take holds several subjects, one FitResult per subject (this
-    one is the first); empty for a take of one subject.
+    one is the first); empty for a take of one subject. ``points``: from :func:`solve`, the
+    (F, M, 3) markers it solved, one column per skeleton label (a fit's are its markers').
     """
 
     motion: Any
@@ -211,6 +212,7 @@ class FitResult:
     report: dict
     run: Run
     subjects: list["FitResult"] = field(default_factory=list)
+    points: Any = None
 
 
 def _chain(a: Run, b: Run) -> Run:
@@ -409,4 +411,5 @@ def solve(
     t = time.perf_counter()
     checks.add_to_report(report, checks.run_checks(motion, pts))
     report["seconds"]["checks"] = round(time.perf_counter() - t, 4)
-    return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings))
+    return FitResult(motion=motion, bvh=bvh, report=report, run=Run(artifact=motion, key="solve", seconds=seconds, warnings=warnings),
+                     points=pts)

@@ -62,6 +62,35 @@ def write_markers_out(path, motion, input_path, read, bvh=None, labels=None) -> 
     write_markers(path, with_joint_markers(markers, motion, naming))
 
 
+def check_osim_out(path, input) -> tuple[str, str, str]:
+    """``--osim-out SUBJECT.osim``: the model and, beside it, ``SUBJECT.trc`` (markers) and ``SUBJECT.mot``
+    (coordinates); each must be a file that can be written and not the input."""
+    from ..io.osim import osim_companions
+
+    check_output(path, input, suffixes=(".osim",))
+    trc, mot = osim_companions(path)
+    for other in (trc, mot):
+        check_output(other, input)
+    return str(path), trc, mot
+
+
+def osim_model(r, up: str):
+    """The OpenSim model of one fit (``r``: a FitResult), its ``osim`` report entry set."""
+    from ..solvers.osim_model import build_model
+
+    source = r.report.get("input", {}).get("file") or ""
+    model = build_model(r.motion, r.bvh.naming, up=up, name=Path(source).stem or "mocapskel")
+    r.report["osim"] = model.report()
+    return model
+
+
+def write_osim_out(out, path, model, points, rate, source="") -> None:
+    """Stage and write the .osim, .trc and .mot of ``--osim-out path``."""
+    from ..io.osim import osim_companions, write_osim_outputs
+
+    write_osim_outputs(tuple(out.stage(p) for p in (path, *osim_companions(path))), model, points, rate, source)
+
+
 def write_outputs(out, output, gltf_path, b) -> None:
     """The motion as BVH (or glTF, by the output's extension), and as glTF too when asked."""
     for path in (output, gltf_path):
@@ -100,12 +129,14 @@ def write_report(path, report: dict) -> None:
 @click.option("--report", "report_path", type=click.Path(), default=None, help="Also write the JSON report here.")
 @click.option("--skeleton-out", "skeleton_out", type=click.Path(), default=None, help="Also write the subject skeleton (.skel) for 'mocapskel solve'.")
 @click.option("--markers-out", "markers_out", type=click.Path(), default=None, help="Also write the markers plus virtual joint markers (.c3d or .trc).")
+@click.option("--osim-out", "osim_out", type=click.Path(), default=None,
+              help="Also write an OpenSim model (.osim) and beside it its markers (.trc) and coordinates (.mot).")
 @click.option("--html", "html_path", type=click.Path(), default=None, help="Also write the HTML report (plots, 3-D view) here; needs mocapskel[report].")
 @strict_option
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, html_path, strict, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, osim_out, html_path, strict, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -122,6 +153,8 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
         check_output(skeleton_out, input, suffixes=(".skel",))
     if markers_out:
         check_output(markers_out, input, suffixes=(".c3d", ".trc"))
+    if osim_out:
+        check_osim_out(osim_out, input)
     if html_path:
         from ..html_report import require_matplotlib
         from .report import HTML_SUFFIXES
@@ -138,14 +171,18 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
     for r in fits:  # one subject: the names as given; several: OUT_1.bvh, OUT_2.bvh … and likewise every output
         r.report.setdefault("outputs", {})
         for what, path in (("bvh", output), ("gltf", gltf_path), ("report", report_path), ("skeleton", skeleton_out),
-                           ("markers", markers_out), ("html", html_path)):
+                           ("markers", markers_out), ("osim", osim_out), ("html", html_path)):
             if path:
                 r.report["outputs"][what] = numbered(path, r.report["subject"]["index"]) if several else str(path)
         if several:
             for item in r.report["subjects"]:
                 item["bvh"] = numbered(output, item["index"])
-    with AtomicOutputs() as out:  # every output appears at the end, or none does
+    models = [osim_model(r, up) for r in fits] if osim_out else [None] * len(fits)  # before any output: errors first
+    if osim_out and several:
         for r in fits:
+            check_osim_out(r.report["outputs"]["osim"], input)
+    with AtomicOutputs() as out:  # every output appears at the end, or none does
+        for r, model in zip(fits, models):
             o = r.report["outputs"]
             b = r.bvh
             write_outputs(out, o["bvh"], o.get("gltf"), b)
@@ -158,6 +195,9 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
             if markers_out:
                 labels = r.motion.skeleton.labels if several else None
                 write_markers_out(out.stage(o["markers"]), r.motion, input, make_read(exclude, include), b, labels)
+            if osim_out:
+                write_osim_out(out, o["osim"], model, pipeline.artifacts.markers_of(r.motion).points, r.motion.rate,
+                               r.report["input"]["file"])
             if html_path:
                 from .report import write_html_report
 

@@ -306,7 +306,7 @@ def read_trc(path: str | os.PathLike) -> RawTake:
     )
 
 
-def write_trc(path: str | os.PathLike, markers: Markers) -> None:
+def write_trc(path: str | os.PathLike, markers: Markers, missing: str = "") -> None:
     """Write markers as a tab-separated TRC file in mm, atomically.
 
     Parameters
@@ -317,6 +317,9 @@ def write_trc(path: str | os.PathLike, markers: Markers) -> None:
         ``points`` (F, M, 3) in mm; NaN (any non-finite value) is written as
         empty fields. Coordinates are written with 6 decimals, the rate
         exactly (shortest repr); whitespace inside a label becomes ``_``.
+    missing : str
+        What a gap's fields hold: empty (the default), or ``"NaN"``, which OpenSim's readers take in
+        any column (they lose empty fields at the end of a row).
     """
     pts = np.asarray(markers.points, dtype=np.float64)
     F, M = pts.shape[:2]
@@ -338,7 +341,7 @@ def write_trc(path: str | os.PathLike, markers: Markers) -> None:
     table[:, 2:] = np.where(seen, flat, np.nan)
     buf = io.StringIO()
     np.savetxt(buf, table, fmt=["%d", "%.6f"] + ["%.6f"] * (3 * M), delimiter="\t")
-    body = buf.getvalue().replace("nan", "")
+    body = buf.getvalue().replace("nan", missing)
     del buf
     with atomic_open(path, "w", encoding="utf-8", newline="\n") as f:
         f.write(head)

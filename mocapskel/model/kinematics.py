@@ -1,4 +1,4 @@
-"""Forward kinematics of a solved Motion: where its joints are in the lab."""
+"""Forward kinematics of a solved Motion: where its joints are in the lab, at rest and per frame."""
 from __future__ import annotations
 
 import numpy as np
@@ -35,3 +35,21 @@ def segment_origins(motion: Motion) -> np.ndarray:
     return pos
 
 
+def joint_points_rest(skel, new_parent: np.ndarray, naming) -> np.ndarray:
+    """(S, 3) rest position (lab, mm) of each segment's joint with its parent in the tree ``new_parent``
+    (the tree the BVH and the OpenSim model are written on).
+
+    A segment's joint with its new parent is the joint of the fitted tree
+    between them; the root's is its origin, or for a person the midpoint of
+    the two hip joints.
+    """
+    old = np.asarray(skel.parent)
+    origin = np.asarray(skel.origin, dtype=np.float64)
+    r = origin.copy()
+    for s, q in enumerate(new_parent.tolist()):
+        if q >= 0 and old[s] != q:  # the edge is reversed: the joint is the old child's origin
+            r[s] = origin[q]
+    root = int(np.flatnonzero(new_parent < 0)[0])
+    if naming.hips_children:
+        r[root] = np.mean([origin[c] if old[c] == root else origin[root] for c in naming.hips_children], axis=0)
+    return r

@@ -181,3 +181,23 @@ def subtree_shape(parent: np.ndarray, count: np.ndarray, s: int) -> tuple:
     """A canonical form of the subtree below segment ``s``: its marker count and its children's
     forms, sorted."""
     return (int(count[s]), tuple(sorted(subtree_shape(parent, count, int(k)) for k in np.flatnonzero(parent == s))))
+
+
+def tree_from(parent: np.ndarray, root: int) -> np.ndarray:
+    """The parent array of the same tree rooted at ``root``."""
+    S = len(parent)
+    nb: list[list[int]] = [[] for _ in range(S)]
+    for s, p in enumerate(parent.tolist()):
+        if p >= 0:
+            nb[s].append(p)
+            nb[p].append(s)
+    new = np.full(S, -2, dtype=np.int64)
+    new[root] = -1
+    stack = [root]
+    while stack:
+        s = stack.pop()
+        for n in sorted(nb[s]):
+            if new[n] == -2:
+                new[n] = s
+                stack.append(n)
+    return new

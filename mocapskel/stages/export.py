@@ -24,7 +24,8 @@ import numpy as np
 
 from ..artifacts import Motion
 from ..solvers.bvh_pose import BvhSkeleton, choose_rotation_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
-from ..model.tree import depth_first_order
+from ..model.tree import depth_first_order, tree_from
+from ..model.kinematics import joint_points_rest
 from ..model.naming import SCHEMES, Naming, name_skeleton
 from ..solvers.rotations import rotation_between
 
@@ -78,45 +79,6 @@ class BvhMotion:
         if self.naming is not None and self.segment is not None:
             out["joints"] = {self.skeleton.names[i]: int(s) for i, s in enumerate(self.segment.tolist())}
         return out
-
-
-def tree_from(parent: np.ndarray, root: int) -> np.ndarray:
-    """The parent array of the same tree rooted at ``root``."""
-    S = len(parent)
-    nb: list[list[int]] = [[] for _ in range(S)]
-    for s, p in enumerate(parent.tolist()):
-        if p >= 0:
-            nb[s].append(p)
-            nb[p].append(s)
-    new = np.full(S, -2, dtype=np.int64)
-    new[root] = -1
-    stack = [root]
-    while stack:
-        s = stack.pop()
-        for n in sorted(nb[s]):
-            if new[n] == -2:
-                new[n] = s
-                stack.append(n)
-    return new
-
-
-def joint_points_rest(skel, new_parent: np.ndarray, naming: Naming) -> np.ndarray:
-    """(S, 3) rest position (lab, mm) of the BVH joint of each segment.
-
-    A segment's joint with its new parent is the joint of the fitted tree
-    between them; the root's is its origin, or for a person the midpoint of
-    the two hip joints.
-    """
-    old = np.asarray(skel.parent)
-    origin = np.asarray(skel.origin, dtype=np.float64)
-    r = origin.copy()
-    for s, q in enumerate(new_parent.tolist()):
-        if q >= 0 and old[s] != q:  # the edge is reversed: the joint is the old child's origin
-            r[s] = origin[q]
-    root = int(np.flatnonzero(new_parent < 0)[0])
-    if naming.hips_children:
-        r[root] = np.mean([origin[c] if old[c] == root else origin[root] for c in naming.hips_children], axis=0)
-    return r
 
 
 def _frame_of(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:

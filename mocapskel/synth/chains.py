@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from ..artifacts import Markers
 from .truth import SynthTake, Truth
 
-__all__ = ["hang_chain", "hang_tree", "kirk_linkage"]
+__all__ = ["hang_chain", "hang_tree", "hinge_chain", "kirk_linkage"]
 
 #: Nominal frame rate of Hang chains (Hz); Hang gives none.
 CHAIN_RATE = 100.0
@@ -231,6 +231,74 @@ def hang_chain(
     markers = Markers(points=m.points, labels=m.labels, rate=m.rate, units=m.units, source=name, info=dict(info))
     truth = Truth(tr.segment_names, tr.parent, tr.marker_segment, tr.marker_id, tr.joint_child,
                   tr.joints, tr.bone_length, info)
+    return SynthTake(markers, truth)
+
+
+def hinge_chain(
+    counts: Sequence[int],
+    n_frames: int = 100,
+    *,
+    rng: np.random.Generator,
+    link_length: float = 300.0,
+    noise: float = 0.0,
+    amplitude: float = 1.0,
+) -> SynthTake:
+    """A chain of rigid segments joined by hinges (one degree of freedom each), like a robot arm.
+
+    As :func:`hang_chain` (markers, root motion, ``link_length`` between joints), but segment ``i + 1``
+    turns relative to segment ``i`` about one axis fixed in both: a random direction at least 30
+    degrees off the bone, by a smooth random angle (peak about ``amplitude`` rad, 0.3-1.2 Hz).
+
+    Returns
+    -------
+    SynthTake
+        Truth as :func:`hang_chain`'s, and in ``info["hinge_axes_lab"]`` every hinge's unit axis in
+        the lab per frame ((F, L-1, 3) as nested lists) and in ``info["hinge_axes_local"]`` in its
+        parent segment's frame.
+    """
+    counts = [int(c) for c in counts]
+    if not counts or min(counts) < 1:
+        raise ValueError(f"counts must be a non-empty sequence of positive ints, got {counts}")
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be positive, got {n_frames}")
+    F, S, ll = int(n_frames), len(counts), float(link_length)
+    t = np.arange(F) / CHAIN_RATE
+    tip = np.array([ll, 0.0, 0.0])
+    ends = np.vstack([np.zeros(3), tip])
+    local = [_place_chain_markers(rng, counts[i], ll, ends) for i in range(S)]
+    R = [_rotations(_smooth(rng, t, 3, amp=1.0, freq=(0.2, 1.0))) @ Rotation.random(random_state=rng).as_matrix()]
+    O = [_smooth(rng, t, 3, amp=ll, freq=(0.2, 1.0)) + rng.uniform(-ll, ll, 3)]
+    axes = []
+    for _ in range(1, S):
+        while True:
+            a = rng.normal(size=3)
+            a /= np.linalg.norm(a)
+            if abs(a[0]) < np.cos(np.radians(30.0)):
+                break
+        ang = _smooth(rng, t, 1, amp=amplitude, freq=(0.3, 1.2))[:, 0]
+        O.append(O[-1] + R[-1] @ tip)
+        axes.append(a)
+        R.append(R[-1] @ _rotations(ang[:, None] * a))
+    pts = _markers_of(R, O, local)
+    if noise > 0:
+        pts = pts + rng.normal(0.0, noise, pts.shape)
+    lab_axes = np.stack([R[i] @ axes[i] for i in range(S - 1)], axis=1) if S > 1 else np.zeros((F, 0, 3))
+    name = "hinge_chain<" + "-".join(map(str, counts)) + ">"
+    info = {"kind": "hinge_chain", "counts": counts, "link_length": ll, "noise": float(noise), "rate": CHAIN_RATE,
+            "hinge_axes_local": [a.tolist() for a in axes], "hinge_axes_lab": lab_axes.round(9).tolist()}
+    seg = np.repeat(np.arange(S), counts)
+    markers = Markers(points=pts, labels=tuple(f"S{s}M{k}" for s, n in enumerate(counts) for k in range(n)),
+                      rate=CHAIN_RATE, units="mm", source=name, info={k: v for k, v in info.items() if k != "hinge_axes_lab"})
+    truth = Truth(
+        segment_names=tuple(f"seg{i}" for i in range(S)),
+        parent=np.arange(-1, S - 1),
+        marker_segment=seg,
+        marker_id=np.arange(seg.size),
+        joint_child=np.arange(1, S),
+        joints=np.stack(O[1:], axis=1) if S > 1 else np.zeros((F, 0, 3)),
+        bone_length=np.array([ll] * (S - 2) + [np.nan]) if S > 1 else np.zeros(0),
+        info=info,
+    )
     return SynthTake(markers, truth)
 
 
