@@ -84,6 +84,7 @@ def main() -> None:
         "peak_rss_mb": peak_rss_mb(), "rss_before_fit_mb": base_rss,
         "segments_ok": sc.segments_ok, "topology_ok": sc.topology_ok,
         "joint_rms_mm": sc.joint_rms_mm, "joint_rms_joints_stage_mm": sj.joint_rms_mm, "rse": sj.rse,
+        "joint_rms_max_mm": max(sc.joint_rms_each.values(), default=float("nan")),
         "bone_err_max": sc.bone_err_max, "bone_err": sc.bone_err,
         "ik_rms_mm": res.report["ik"]["marker_rms_mm"],
         "methods": list(res.motion.skeleton.joints.method),

@@ -15,6 +15,7 @@ BENCHES = [
     ("Batches: local workers", "bench.batch"),
     ("Real takes", "bench.realdata"),
     ("Real takes made messier", "bench.altered"),
+    ("Euler spikes in the written BVH", "bench.euler_spikes"),
     ("Output checks: real and generated takes", "bench.checks"),
     ("Humanoid names", "bench.names"),
     ("Generated takes that look like real captures", "bench.realistic"),

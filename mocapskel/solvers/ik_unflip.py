@@ -9,6 +9,12 @@ from .ik_solve import solve_ik
 
 # --------------------------------------------------------------------------- continuity in time
 
+#: Relative rounding level of a fit: poses whose marker rms differ by less than this times the skeleton's
+#: size (its rest-pose markers' largest distance from their centroid) fit equally well.
+ROUNDING = 1e-9
+#: Weight (mm^2 per rad^2) of the prior that holds a pose solved again near itself while the markers polish it.
+POLISH_PRIOR = 0.01
+
 
 def _step_angles(R: np.ndarray) -> np.ndarray:
     """(F-1, ...) angle (deg) between consecutive rotations of (F, ..., 3, 3)."""
@@ -62,9 +68,16 @@ def unflip(
     one frame is solved again, started from and held (``prior_weight``) by the
     segment's rotation slerped across it from the frames around it; a frame
     takes the new pose when its marker rms is no worse than ``(1 + rel_tol)``
-    times the old one plus ``abs_tol_mm``: of two equally good solutions, the
-    one near its neighbours. A stretch the markers really turn in keeps its
-    poses (the new ones fit worse). Vectorised over frames: one solve per pass.
+    times the old one plus ``abs_tol_mm`` or the take's own level of fit (the
+    median over frames of the marker rms, at least its rounding level),
+    whichever is less: of two equally
+    good solutions, the one near its neighbours. A stretch the markers really
+    turn in keeps its poses (the new ones fit worse). The level caps the
+    tolerance where the skeleton fits far better than half a millimetre: on a
+    noise-free chain of links of 1 mm, a whole chain turned a third of its
+    link length off its markers still "fitted as well" within 0.5 mm, and
+    frames that turn fast (the refinement's spread frames) took such poses.
+    Vectorised over frames: one solve per pass.
 
     Parameters
     ----------
@@ -95,7 +108,13 @@ def unflip(
         return rot, root_pos, residual, info
     changed = np.zeros(F, dtype=bool)
     rms = _frame_rms(residual)
+    seen_any = np.isfinite(residual).any(axis=1)
+    level = float(np.median(rms[seen_any])) if seen_any.any() else 0.0
     used = np.asarray(marker_segment) >= 0
+    # rounding: two poses the markers cannot tell apart fit to within a billionth of the skeleton's size
+    rest = np.asarray(origin)[np.asarray(marker_segment)[used]] + np.asarray(marker_local)[used]
+    size = float(np.linalg.norm(rest - rest.mean(axis=0), axis=1).max()) if rest.size else 0.0
+    abs_tol = min(float(abs_tol_mm), max(level, ROUNDING * size))
     any_seen = np.isfinite(observed[:, used].sum(axis=2)).any(axis=1)  # frames IK can solve again
     for _ in range(passes):
         big = steps > max_step_deg
@@ -116,8 +135,16 @@ def unflip(
         res = solve_ik(parent, origin, marker_segment, marker_local, observed[frames], init_rot=start,
                        init_root=root_pos[frames], prior_rot=start, iterations=iterations, prior_weight=prior_weight)
         del start
+        # ...then, where the tolerance is the take's own level (it fits far better than half a millimetre),
+        # let the markers decide what they fix: held by the slerp, the pose sits off their optimum by the
+        # prior's pull (1e-3 mm on a noise-free leaf whose half turn is undone), which a fit of rounding level
+        # would count as worse; held lightly by itself, it keeps the free twist the slerp gave it
+        if abs_tol < abs_tol_mm:
+            res = solve_ik(parent, origin, marker_segment, marker_local, observed[frames], init_rot=res.rot,
+                           init_root=res.root_pos, prior_rot=res.rot.copy(), iterations=iterations,
+                           prior_weight=POLISH_PRIOR)
         new_rms = _frame_rms(res.residual)
-        ok = new_rms <= (1.0 + rel_tol) * rms[frames] + abs_tol_mm
+        ok = new_rms <= (1.0 + rel_tol) * rms[frames] + abs_tol
         # ...and where the frame's largest turn from or to its neighbours does not grow
         # (judged with every equally good frame taken)
         where = np.full(F, -1)

@@ -57,7 +57,9 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
     if not np.isfinite(root_pos).all():
         # fall back to the mean of the root's markers, offset as at rest
         mids = np.flatnonzero(skel.marker_segment == root)
-        c = np.nanmean(points[:, mids], axis=1) if mids.size else np.full((F, 3), np.nan)
+        seen = np.isfinite(points[:, mids]).all(-1)  # (F, m): frames with none seen stay NaN
+        n = seen.sum(1)[:, None]
+        c = np.where(seen[..., None], points[:, mids], 0.0).sum(1) / np.where(n > 0, n, np.nan)
         c0 = np.mean(skel.origin[root] + skel.marker_local[mids], axis=0) if mids.size else skel.origin[root]
         root_pos = c - c0 + skel.origin[root]
         fr = np.flatnonzero(np.isfinite(root_pos).all(1))

@@ -27,7 +27,7 @@ import numpy as np
 from ..artifacts import Motion, Skeleton, markers_of
 from ..solvers.motion import MAX_STEP_DEG, TOL, _centres_by_edges, solve
 
-VERSION = 7
+VERSION = 8
 
 
 @dataclass(frozen=True)

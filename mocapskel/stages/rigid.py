@@ -26,7 +26,7 @@ from ..solvers.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
 
-VERSION = 24
+VERSION = 25
 
 
 @dataclass(frozen=True)
