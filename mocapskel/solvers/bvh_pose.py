@@ -410,7 +410,7 @@ def rerest_local(parent: np.ndarray, local: np.ndarray, Q: np.ndarray) -> np.nda
 
 
 def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndarray, keep: int,
-                          orders: tuple[str, ...] = ORDERS, n_rests: int = 32, batch: int = 8,
+                          orders: tuple[str, ...] = ORDERS, n_rests: int = 64, batch: int = 8,
                           n_steps: int = 2048, n_final: int = 3) -> tuple[int, str]:
     """The rest frame and the rotation order of the fewest Euler spikes, chosen together.
 

@@ -161,8 +161,9 @@ def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, 
 def rest_candidates(motion: Motion) -> np.ndarray:
     """Frames whose pose may be the rest pose: every segment seen (as many of its markers as the rigid
     stage asks of its rest frame: three, or all it has if fewer), or as many segments as any frame sees,
-    and the markers fitted at least as well as in half of those frames (no pose the fit got wrong).
-    Empty when no marker residual is known."""
+    and the frame's marker rms no outlier among those frames (within three robust standard deviations,
+    1.4826 MAD, of their median: not a pose the fit got wrong, such as a limb flipped onto a marker
+    that jumped). Empty when no marker residual is known."""
     res = np.asarray(motion.residual, dtype=np.float64)
     seg = np.asarray(motion.skeleton.marker_segment)
     S = len(motion.skeleton.parent)
@@ -181,7 +182,8 @@ def rest_candidates(motion: Motion) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         rms = np.sqrt(np.nanmean(np.where(seen[ok], res[ok] ** 2, np.nan), axis=1))
     f = np.flatnonzero(ok)
-    return f[rms <= np.median(rms)]
+    med = np.median(rms)
+    return f[rms <= med + 3.0 * 1.4826 * np.median(np.abs(rms - med))]
 
 
 def run(motion: Motion, params: Params = Params()) -> BvhMotion:
