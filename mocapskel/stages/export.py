@@ -25,7 +25,7 @@ import numpy as np
 from ..artifacts import Motion
 from ..errors import DataError
 from ..solvers.bvh_pose import (BvhSkeleton, choose_rest_and_order, choose_rotation_order, global_to_local_rot,
-                                lab_rot_to_bvh, lab_to_bvh, local_to_global_rot, rerest_local)
+                                bvh_rot_to_lab, lab_rot_to_bvh, lab_to_bvh, local_to_global_rot, rerest_local)
 from ..solvers.rotations import ORDERS
 from ..model.tree import depth_first_order, tree_from
 from ..model.kinematics import joint_points_rest
@@ -70,6 +70,9 @@ class BvhMotion:
     rest     : the rest pose written ("frame", "tpose" or "apose").
     notes    : what the user should know (a rest pose asked for but not possible ...).
     rest_frame : the frame whose pose is the rest pose (None for a T-pose or A-pose rest).
+    rest_rot : (S, 3, 3) lab axes: each joint's segment turned from the skeleton's rest pose to the
+               BVH's (the identity where they are the same), e.g. a marker's offset in the BVH's rest
+               is ``rest_rot @ Skeleton.marker_local``.
     """
 
     skeleton: BvhSkeleton
@@ -83,6 +86,7 @@ class BvhMotion:
     up: str = "y"
     units: str = "cm"
     rest_frame: int | None = None
+    rest_rot: np.ndarray | None = None
 
     def report(self) -> dict:
         """The report's ``export`` entry."""
@@ -241,6 +245,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     offset[par < 0] = 0.0
     end_site = lab_to_bvh(end_lab[perm], params.up, params.units)
     local = global_to_local_rot(par, lab_rot_to_bvh(rot, params.up, joints=perm))
+    rest_rot = Q[perm] if rest != "frame" else np.broadcast_to(np.eye(3), (perm.size, 3, 3)).copy()
     order = params.order
     rest_frame = int(sk.rest_frame) if rest == "frame" else None
     if rest == "frame" and params.rest_frame != "skeleton":
@@ -260,6 +265,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
             sub = par >= 0
             offset[sub] = np.einsum("sij,sj->si", Q[par[sub]], offset[sub])
             end_site = np.einsum("sij,sj->si", Q, end_site)
+            rest_rot = bvh_rot_to_lab(Q, params.up)
         rest_frame = r
     bskel = BvhSkeleton(
         names=tuple(naming.names[i] for i in perm),
@@ -271,7 +277,7 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
     return BvhMotion(bskel, lab_to_bvh(root_world, params.up, params.units), local, 1.0 / rate,
                      segment=perm, naming=naming, rest=rest, notes=tuple(notes),
-                     up=params.up, units=params.units, rest_frame=rest_frame)
+                     up=params.up, units=params.units, rest_frame=rest_frame, rest_rot=rest_rot)
 
 
 def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
