@@ -409,6 +409,19 @@ def rerest_local(parent: np.ndarray, local: np.ndarray, Q: np.ndarray) -> np.nda
     return np.einsum("sij,fsjk,slk->fsil", Qp, np.asarray(local, dtype=np.float64), Q, optimize=True)
 
 
+def _count_every_step(L: np.ndarray, parent: np.ndarray, Q: np.ndarray, orders: tuple[str, ...],
+                      chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`RestSteps.count` over every step of ``L``, ``chunk`` steps at a time (bounded memory)."""
+    F = L.shape[0]
+    sp = np.zeros((Q.shape[0], len(orders)), dtype=np.int64)
+    nr = np.zeros_like(sp)
+    for a in range(0, F - 1, chunk):
+        s, r = RestSteps(L[a : a + chunk + 1], parent).count(Q, orders)
+        sp += s
+        nr += r
+    return sp, nr
+
+
 def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndarray, keep: int,
                           orders: tuple[str, ...] = ORDERS, n_rests: int = 64, batch: int = 8,
                           n_steps: int = 2048, n_final: int = 3) -> tuple[int, str]:
@@ -425,8 +438,9 @@ def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndar
     batch spread over the take), in every order
     (:func:`~mocapskel.solvers.euler_continuity.rest_spike_counts`), on at most
     ``n_steps`` frame steps spread over the take; the ``n_final`` best pairs of
-    a batch are counted on every step, and the search stops at the first pair
-    with no spike. Among pairs: fewest spikes, then ``keep``, then the fewest
+    a batch are counted on every step (unless their sampled steps, a part of all,
+    already spike as often as the best so far), and the search stops at the first
+    pair with no spike. Among pairs: fewest spikes, then ``keep``, then the fewest
     steps near lock.
 
     Parameters
@@ -454,13 +468,13 @@ def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndar
         return int(keep), (choose_rotation_order(L, spikes=sp) if len(orders) == len(ORDERS) else orders[int(np.argmin(sp))])
     n = int(np.argmin(sp))
     best = ((int(sp[n]), False, 0), int(keep), orders[n])
+    L = np.ascontiguousarray(L)  # frames outermost: the steps below are read frame by frame
     frames = np.unique(np.asarray(frames, dtype=np.int64))
     frames = frames[(frames >= 0) & (frames < F) & (frames != keep)]
     if frames.size > n_rests:
         frames = frames[np.round(np.linspace(0, frames.size - 1, n_rests)).astype(np.int64)]
     exact = F - 1 <= n_steps
-    full = RestSteps(L, parent)
-    sampled = full if exact else RestSteps(L, parent, np.unique(np.linspace(0, F - 2, n_steps).astype(np.int64)))
+    sampled = RestSteps(L, parent, None if exact else np.unique(np.linspace(0, F - 2, n_steps).astype(np.int64)))
     n_batches = max(1, -(-frames.size // batch))
     for b in range(n_batches):
         rests = frames[b::n_batches]
@@ -470,7 +484,9 @@ def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndar
         sp, nr = sampled.count(Q, orders)
         for kn in np.lexsort((nr.ravel(), sp.ravel()))[: 1 if exact else n_final].tolist():
             k, n = divmod(kn, len(orders))
-            s_, r_ = (sp[k, n], nr[k, n]) if exact else (x[0, 0] for x in full.count(Q[k : k + 1], (orders[n],)))
+            if not exact and (sp[k, n] > best[0][0] or (sp[k, n] == best[0][0] and not best[0][1])):
+                continue  # its sampled steps, a part of all, already spike as often as the best on all
+            s_, r_ = (sp[k, n], nr[k, n]) if exact else (x[0, 0] for x in _count_every_step(L, parent, Q[k : k + 1], (orders[n],)))
             cand = ((int(s_), True, int(r_)), int(rests[k]), orders[n])
             if cand[0] < best[0]:
                 best = cand

@@ -160,12 +160,16 @@ class RestSteps:
         L = np.asarray(local, dtype=np.float64)
         self.parent = np.asarray(parent, dtype=np.int64)
         self.margin_deg = float(margin_deg)
-        f = np.arange(max(L.shape[0] - 1, 0)) if steps is None else np.asarray(steps, dtype=np.int64)
-        N, S = f.size, L.shape[1]
+        if steps is None:
+            R0, R1 = L[:-1], L[1:]
+        else:
+            f = np.asarray(steps, dtype=np.int64)
+            R0, R1 = L[f], L[f + 1]
+        N, S = R0.shape[0], L.shape[1]
         # both ends of every step, joint by joint: (S, 2N, 9), one copy of the take
         A = np.empty((S, 2 * N, 9))
-        A[:, :N] = L[f].reshape(N, S, 9).transpose(1, 0, 2)
-        A[:, N:] = L[f + 1].reshape(N, S, 9).transpose(1, 0, 2)
+        A[:, :N] = R0.reshape(N, S, 9).transpose(1, 0, 2)
+        A[:, N:] = R1.reshape(N, S, 9).transpose(1, 0, 2)
         self.A, self.N, self.S = A, N, S
         tr = np.einsum("snx,snx->sn", A[:, :N], A[:, N:])
         self.th = 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))  # (S, N), the same for every rest
