@@ -26,11 +26,10 @@ from ..artifacts import Motion
 from ..errors import DataError
 from ..solvers.bvh_pose import (BvhSkeleton, choose_rest_and_order, choose_rotation_order, global_to_local_rot,
                                 bvh_rot_to_lab, lab_rot_to_bvh, lab_to_bvh, local_to_global_rot, rerest_local)
-from ..solvers.rotations import ORDERS
 from ..model.tree import depth_first_order, tree_from
 from ..model.kinematics import joint_points_rest
 from ..model.naming import SCHEMES, Naming, name_skeleton
-from ..solvers.rotations import rotation_between
+from ..solvers.rotations import ORDERS, rotation_between
 
 VERSION = 6
 
@@ -69,7 +68,8 @@ class BvhMotion:
     naming   : how the joints were named (and why).
     rest     : the rest pose written ("frame", "tpose" or "apose").
     notes    : what the user should know (a rest pose asked for but not possible ...).
-    rest_frame : the frame whose pose is the rest pose (None for a T-pose or A-pose rest).
+    rest_frame : the frame whose pose is the rest pose (None for a T-pose or A-pose rest; with
+               ``Params.rest_frame="skeleton"`` the skeleton's, for ``solve`` a frame of the take it was fitted to).
     rest_rot : (S, 3, 3) lab axes: each joint's segment turned from the skeleton's rest pose to the
                BVH's (the identity where they are the same), e.g. a marker's offset in the BVH's rest
                is ``rest_rot @ Skeleton.marker_local``.
@@ -199,6 +199,8 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         raise ValueError(f"names must be one of {NAMES}")
     if params.rest not in RESTS:
         raise ValueError(f"rest must be one of {RESTS}")
+    if isinstance(params.rest_frame, str) and params.rest_frame not in ("auto", "skeleton"):
+        raise ValueError("rest_frame must be a frame number, 'auto' or 'skeleton'")
     sk = motion.skeleton
     naming = name_skeleton(sk, motion, params.names)
     notes: list[str] = []
