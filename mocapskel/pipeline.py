@@ -194,7 +194,8 @@ def make_params(
         "segment": segment.Params(n_segments=segments),
         "joints": joints.Params(method=joint_method),
         "rigid": rigid.Params(rest_frame=rest_frame),
-        "export": export.Params(up=up, units=units, names=names, rest=rest),
+        "export": export.Params(up=up, units=units, names=names, rest=rest,
+                                rest_frame="auto" if rest_frame is None else rest_frame),
     }
 
 
@@ -279,6 +280,8 @@ def _finish_report(report: dict, run: Run, bvh: Any) -> None:
     from . import checks
 
     report["export"] = bvh.report()
+    if bvh.rest_frame is not None:
+        report["rest_frame"] = bvh.rest_frame  # the BVH's rest pose (the skeleton's may be another frame's)
     report["warnings"].extend(bvh.notes)
     t_chk = time.perf_counter()
     motion = run.artifact
@@ -382,7 +385,8 @@ def solve(
                           version=ik.VERSION)
     seconds["ik"] = time.perf_counter() - t
     t = time.perf_counter()
-    bvh = export.run(motion, params.get("export") or export.Params())
+    # the skeleton's own rest pose: one skeleton, the same OFFSETs, in every take it solves
+    bvh = export.run(motion, dataclasses.replace(params.get("export") or export.Params(), rest_frame="skeleton"))
     seconds["export"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
     warnings = []

@@ -11,8 +11,11 @@ from mocapskel import pipeline
 from mocapskel.io.bvh import write_bvh
 from mocapskel.io.bvh_read import read_bvh
 from mocapskel.io.markers import write_markers
-from mocapskel.solvers.bvh_pose import BvhSkeleton, bvh_to_lab, choose_rotation_order, forward_kinematics
-from mocapskel.solvers.euler_continuity import channel_steps, euler_spikes, order_spike_counts, rotation_steps
+from mocapskel.errors import DataError
+from mocapskel.solvers.bvh_pose import (BvhSkeleton, bvh_to_lab, choose_rest_and_order, choose_rotation_order,
+                                        forward_kinematics, local_to_global_rot, rerest_local)
+from mocapskel.solvers.euler_continuity import (RestSteps, channel_steps, euler_spikes, order_spike_counts,
+                                                rotation_steps, step_spike_counts)
 from mocapskel.solvers.rotations import ORDERS, euler_to_matrix, matrix_to_quat, rotvec_to_matrix
 from mocapskel.stages import export
 from mocapskel.synth.presets import active_rom, make, passive_rom
@@ -167,3 +170,105 @@ def test_rom_bvh_has_the_fewest_spikes_of_any_order_and_keeps_the_motion(roms, t
     skel, root, local, _ = read_bvh(path)
     got = bvh_to_lab(forward_kinematics(skel, root, local), up, b.units)
     np.testing.assert_allclose(got, export.joint_positions_lab(res.motion, b), atol=1e-3)  # mm
+
+
+# --------------------------------------------------------------------------- the rest frame
+
+
+def _random_take(locks: tuple[str, ...] = ("ZXY", "YXZ"), F: int = 500, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(local, parent): a chain whose joints random-walk, one more joint moving about each order's lock of
+    ``locks`` (outer angles swinging +-40 degrees, the middle one at 82-88 degrees)."""
+    rng = np.random.default_rng(seed)
+    S = 3 + len(locks)
+    R = rotvec_to_matrix(np.cumsum(rng.normal(scale=0.05, size=(F, S, 3)), axis=0))
+    for s, order in enumerate(locks, 1):
+        p = 40.0 * np.sin(np.linspace(0, 5 * np.pi, F) + s) + rng.normal(scale=1.0, size=F)
+        R[:, s] = euler_to_matrix(np.stack([p, 85.0 + 3.0 * np.sin(np.linspace(0, 7, F)), -p], axis=1), order)
+    return R, np.arange(S) - 1
+
+
+def test_spikes_under_other_rests_are_those_of_the_re_posed_motion() -> None:
+    """RestSteps counts from one matrix entry per order; against each rest's motion re-posed in full."""
+    L, parent = _random_take()
+    rests = np.array([0, 77, 250, 499])
+    Q = local_to_global_rot(parent, L[rests])
+    got, near = RestSteps(L, parent).count(Q)
+    want = np.array([order_spike_counts(rerest_local(parent, L, q)) for q in Q])
+    np.testing.assert_array_equal(got, want)
+    assert want.min() < want.max() and want.max() > 0  # the rests differ: the choice matters
+    assert (near >= got).all()
+    # the re-posed motion: frame r's pose is the rest (every rotation the identity there), the turns unchanged
+    for r, q in zip(rests, Q):
+        Lr = rerest_local(parent, L, q)
+        np.testing.assert_allclose(Lr[r], np.broadcast_to(np.eye(3), Lr[r].shape), atol=1e-12)
+        np.testing.assert_allclose(rotation_steps(Lr), rotation_steps(L), atol=1e-6)
+    # a subset of the steps: as the pairs counted on their own
+    steps = np.arange(0, L.shape[0] - 1, 3)
+    sub, _ = RestSteps(L, parent, steps).count(Q[1:2])
+    Lr = rerest_local(parent, L, Q[1])
+    np.testing.assert_array_equal(sub[0], step_spike_counts(Lr[steps], Lr[steps + 1]))
+
+
+def test_the_rest_chosen_with_the_order_writes_no_spike(tmp_path: Path) -> None:
+    L, parent = _random_take(ORDERS, seed=0)
+    keep = 0
+    assert order_spike_counts(L).min() > 0  # the motion's own rest spikes in every order
+    r, order = choose_rest_and_order(L, parent, np.arange(L.shape[0]), keep)
+    assert r != keep
+    Lr = rerest_local(parent, L, local_to_global_rot(parent, L[r : r + 1])[0])
+    assert _file_spikes(_write(tmp_path / "r.bvh", Lr, order)) == 0
+    # without spikes at its own rest, the rest stays and the order is choose_rotation_order's
+    calm = rotvec_to_matrix(np.cumsum(np.full((300, 3, 3), 0.002), axis=0))
+    assert choose_rest_and_order(calm, np.arange(3) - 1, np.arange(300), 7) == (7, choose_rotation_order(calm))
+
+
+def _rest_channels_zero(path: Path, frame: int) -> None:
+    ang = _channels(path)
+    assert np.abs(((ang[frame] + 180.0) % 360.0) - 180.0).max() < 1e-4
+
+
+@pytest.mark.parametrize("up", ["y", "z"])
+@pytest.mark.parametrize("kind", ["active", "passive"])
+def test_rom_bvh_written_by_default_has_no_spike(roms, tmp_path: Path, kind: str, up: str) -> None:
+    """The default BVH of a generated ROM take: no Euler spike, every joint where the fit puts it, all
+    channels zero at the rest frame; with the skeleton's rest frame kept (the previous choice) it spikes."""
+    res = roms[kind]
+    b = export.run(res.motion, export.Params(up=up))
+    path = write_bvh_of(tmp_path / "auto.bvh", b)
+    assert _file_spikes(path) == 0
+    skel, root, local, _ = read_bvh(path)
+    got = bvh_to_lab(forward_kinematics(skel, root, local), up, b.units)
+    np.testing.assert_allclose(got, export.joint_positions_lab(res.motion, b), atol=1e-3)  # mm
+    assert b.rest_frame in export.rest_candidates(res.motion).tolist() + [res.motion.skeleton.rest_frame]
+    _rest_channels_zero(path, b.rest_frame)
+    assert res.report["rest_frame"] == res.bvh.rest_frame
+    old = export.run(res.motion, export.Params(up=up, rest_frame="skeleton"))
+    assert _file_spikes(write_bvh_of(tmp_path / "old.bvh", old)) > 0
+
+
+def write_bvh_of(path: Path, b) -> Path:
+    write_bvh(path, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    return path
+
+
+def test_a_rest_frame_given_is_the_rest(roms, tmp_path: Path) -> None:
+    motion = roms["active"].motion
+    F = motion.rot.shape[0]
+    keep = motion.skeleton.rest_frame
+    base = export.run(motion, export.Params(rest_frame="skeleton"))
+    same = export.run(motion, export.Params(rest_frame=keep))
+    np.testing.assert_array_equal(same.skeleton.offset, base.skeleton.offset)
+    np.testing.assert_array_equal(same.local_rot, base.local_rot)
+    N = (keep + F // 2) % F
+    b = export.run(motion, export.Params(rest_frame=N, order="ZXY"))
+    assert b.rest_frame == N and b.skeleton.order == "ZXY" and b.report()["rest_frame"] == N
+    path = write_bvh_of(tmp_path / "n.bvh", b)
+    _rest_channels_zero(path, N)
+    skel, root, local, _ = read_bvh(path)
+    np.testing.assert_allclose(bvh_to_lab(forward_kinematics(skel, root, local), "y", b.units),
+                               export.joint_positions_lab(motion, b), atol=1e-3)
+    # bone lengths are the skeleton's whatever the rest
+    np.testing.assert_allclose(np.linalg.norm(b.skeleton.offset, axis=1), np.linalg.norm(base.skeleton.offset, axis=1),
+                               atol=1e-9)
+    with pytest.raises(DataError, match="outside the take"):
+        export.run(motion, export.Params(rest_frame=F))

@@ -56,6 +56,10 @@ def test_solve_other_take_of_same_subject(subject, tmp_path):
     assert rep["labels"]["matched"] == 48 and rep["ik"]["marker_rms_mm"] < 3.0
     jm = read_markers(tmp_path / "walk_j.trc", include=("*",))
     assert jm.n_markers == 48 + 14 and jm.n_frames == walk.markers.n_frames
+    # one skeleton, one rest pose: the calibration take solved again has the same OFFSETs and End Sites
+    again = pipeline.solve(d / "rom.c3d", read_skeleton(tmp_path / "s.skel"))
+    np.testing.assert_allclose(again.bvh.skeleton.offset, res.bvh.skeleton.offset, atol=1e-9)
+    np.testing.assert_allclose(again.bvh.skeleton.end_site, res.bvh.skeleton.end_site, atol=1e-9)
 
 
 def test_solve_tolerates_missing_and_unknown_labels_and_refuses_too_few(subject, tmp_path):

@@ -8,7 +8,7 @@ from typing import Literal, overload
 import numpy as np
 
 from .rotations import ORDERS, _parse_order
-from .euler_continuity import order_spike_counts
+from .euler_continuity import RestSteps, order_spike_counts
 
 
 #: Length of one output unit in mm (mocapskel's internal unit).
@@ -360,7 +360,7 @@ def near_lock_counts(local_rot: np.ndarray, within_deg: float = 20.0) -> np.ndar
 
 
 def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_margin_deg: float = 30.0,
-                          near_deg: float = 20.0) -> str:
+                          near_deg: float = 20.0, spikes: np.ndarray | None = None) -> str:
     """One rotation order for every joint of a take, with the fewest Euler spikes.
 
     The order whose channels step more than the joints turn plus a few degrees
@@ -370,7 +370,8 @@ def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_mar
     at most twice as fast as the rotation), else the one with the fewest
     joint-frames within ``near_deg`` of lock (:func:`near_lock_counts`), then
     the one whose closest joint stays farthest from lock, ``preferred`` first
-    among equals. See :func:`gimbal_margin`.
+    among equals. See :func:`gimbal_margin`. ``spikes``: the counts of
+    :func:`~mocapskel.solvers.euler_continuity.order_spike_counts`, when known.
     """
     pref = preferred.upper()
     _parse_order(pref)
@@ -378,7 +379,7 @@ def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_mar
     if R.shape[0] == 0 or R.shape[1] == 0:
         return pref
     worst = gimbal_margin(R).min(axis=0)
-    spikes = order_spike_counts(R)
+    spikes = order_spike_counts(R) if spikes is None else np.asarray(spikes)
     near = near_lock_counts(R, near_deg)
     p = ORDERS.index(pref)
     cands = [pref] + [o for o in ORDERS if o != pref]
@@ -388,6 +389,110 @@ def choose_rotation_order(local_rot: np.ndarray, preferred: str = "ZXY", min_mar
         return (spikes[n], not (n == p and worst[n] >= min_margin_deg), near[n], -worst[n])
 
     return min(cands, key=key)
+
+
+def rerest_local(parent: np.ndarray, local: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Parent-relative rotations after the rest pose is turned by ``Q``: ``Q[p] L Q[s]^T`` (the root: ``L Q[root]^T``).
+
+    Parameters
+    ----------
+    parent : (S,) int array_like
+        -1 for the root.
+    local : (F, S, 3, 3) array_like
+    Q : (S, 3, 3) array_like
+        Each joint's global rotation from the old rest pose to the new one (e.g. the global
+        rotations of a frame, which makes that frame's pose the rest).
+    """
+    parent = np.asarray(parent, dtype=np.int64)
+    Q = np.asarray(Q, dtype=np.float64)
+    Qp = np.where((parent >= 0)[:, None, None], Q[np.maximum(parent, 0)], np.eye(3))
+    return np.einsum("sij,fsjk,slk->fsil", Qp, np.asarray(local, dtype=np.float64), Q, optimize=True)
+
+
+def _count_every_step(L: np.ndarray, parent: np.ndarray, Q: np.ndarray, orders: tuple[str, ...],
+                      chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`RestSteps.count` over every step of ``L``, ``chunk`` steps at a time (bounded memory)."""
+    F = L.shape[0]
+    sp = np.zeros((Q.shape[0], len(orders)), dtype=np.int64)
+    nr = np.zeros_like(sp)
+    for a in range(0, F - 1, chunk):
+        s, r = RestSteps(L[a : a + chunk + 1], parent).count(Q, orders)
+        sp += s
+        nr += r
+    return sp, nr
+
+
+def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndarray, keep: int,
+                          orders: tuple[str, ...] = ORDERS, n_rests: int = 64, batch: int = 8,
+                          n_steps: int = 2048, n_final: int = 3) -> tuple[int, str]:
+    """The rest frame and the rotation order of the fewest Euler spikes, chosen together.
+
+    Taking frame r's pose as the rest turns every joint's rotation into
+    ``Q[p] L Q[s]^T`` with Q the global rotations of frame r: its turns stay, its
+    path moves relative to the orders' gimbal-lock surfaces (the middle angle at
+    +-90 degrees, where the outer angles turn 1 / sin(distance) faster than the
+    joint). ``keep`` (``local``'s own rest) is counted first, in every order of
+    ``orders``, on every step; with no spike in some order it stays, in the
+    order :func:`choose_rotation_order` takes. Else up to ``n_rests`` of
+    ``frames``, spread evenly over them, are tried ``batch`` at a time (each
+    batch spread over the take), in every order
+    (:func:`~mocapskel.solvers.euler_continuity.rest_spike_counts`), on at most
+    ``n_steps`` frame steps spread over the take; the ``n_final`` best pairs of
+    a batch are counted on every step (unless their sampled steps, a part of all,
+    already spike as often as the best so far), and the search stops at the first
+    pair with no spike. Among pairs: fewest spikes, then ``keep``, then the fewest
+    steps near lock.
+
+    Parameters
+    ----------
+    local : (F, S, 3, 3) array_like
+        Rotations relative to the parents, with ``keep``'s pose as the rest.
+    parent : (S,) int array_like
+        -1 for the root; parents precede children.
+    frames : (K,) int array_like
+        The frames whose pose may be the rest (e.g. those where the whole subject is seen).
+    keep : int
+        The frame of ``local``'s own rest pose.
+    orders : tuple of str
+        The orders to choose from.
+
+    Returns
+    -------
+    (frame, order)
+    """
+    L = np.asarray(local, dtype=np.float64)
+    parent = np.asarray(parent, dtype=np.int64)
+    F = L.shape[0]
+    sp = order_spike_counts(L)[[ORDERS.index(o) for o in orders]]
+    if sp.min() == 0 or F < 2:
+        return int(keep), (choose_rotation_order(L, spikes=sp) if len(orders) == len(ORDERS) else orders[int(np.argmin(sp))])
+    n = int(np.argmin(sp))
+    best = ((int(sp[n]), False, 0), int(keep), orders[n])
+    L = np.ascontiguousarray(L)  # frames outermost: the steps below are read frame by frame
+    frames = np.unique(np.asarray(frames, dtype=np.int64))
+    frames = frames[(frames >= 0) & (frames < F) & (frames != keep)]
+    if frames.size > n_rests:
+        frames = frames[np.round(np.linspace(0, frames.size - 1, n_rests)).astype(np.int64)]
+    exact = F - 1 <= n_steps
+    sampled = RestSteps(L, parent, None if exact else np.unique(np.linspace(0, F - 2, n_steps).astype(np.int64)))
+    n_batches = max(1, -(-frames.size // batch))
+    for b in range(n_batches):
+        rests = frames[b::n_batches]
+        if rests.size == 0:
+            continue
+        Q = local_to_global_rot(parent, L[rests])
+        sp, nr = sampled.count(Q, orders)
+        for kn in np.lexsort((nr.ravel(), sp.ravel()))[: 1 if exact else n_final].tolist():
+            k, n = divmod(kn, len(orders))
+            if not exact and (sp[k, n] > best[0][0] or (sp[k, n] == best[0][0] and not best[0][1])):
+                continue  # its sampled steps, a part of all, already spike as often as the best on all
+            s_, r_ = (sp[k, n], nr[k, n]) if exact else (x[0, 0] for x in _count_every_step(L, parent, Q[k : k + 1], (orders[n],)))
+            cand = ((int(s_), True, int(r_)), int(rests[k]), orders[n])
+            if cand[0] < best[0]:
+                best = cand
+        if best[0][0] == 0:
+            break
+    return best[1], best[2]
 
 
 _CACHE_FRAMES = 512  # frames per block of a transposing copy (see _transpose_blocks)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .rotations import ORDERS, _parse_order, matrix_to_euler
 
-__all__ = ["rotation_steps", "channel_steps", "euler_spikes", "order_spike_counts"]
+__all__ = ["rotation_steps", "channel_steps", "euler_spikes", "order_spike_counts", "step_spike_counts", "RestSteps", "rest_spike_counts"]
 
 #: Degrees a channel may step beyond the rotation's own turn (the BVH rule).
 SPIKE_MARGIN_DEG = 5.0
@@ -69,11 +69,8 @@ def order_spike_counts(R: np.ndarray, margin_deg: float = SPIKE_MARGIN_DEG) -> n
 
     A step of frame f to f+1 counts when its smallest channel step over the two
     Euler solutions of frame f+1 (modulo 360, the choice the writer's
-    continuous unwrapping makes) exceeds the turn plus ``margin_deg``. Only
-    candidate steps are decomposed: the Euler rates are bounded, ``|db| <= w``
-    and ``|da|, |dc| <= w / cos b`` for an angular speed w, and ``|b|`` grows
-    by at most the turn theta within a step, so a step with
-    ``theta / cos(|b|max + theta) <= theta + margin`` cannot be a spike.
+    continuous unwrapping makes) exceeds the turn plus ``margin_deg``
+    (:func:`step_spike_counts` of the consecutive frames).
 
     Parameters
     ----------
@@ -86,25 +83,147 @@ def order_spike_counts(R: np.ndarray, margin_deg: float = SPIKE_MARGIN_DEG) -> n
     (6,) int ndarray
     """
     R = np.asarray(R, dtype=np.float64)
-    out = np.zeros(len(ORDERS), dtype=np.int64)
     if R.shape[0] < 2 or R[0].size == 0:
+        return np.zeros(len(ORDERS), dtype=np.int64)
+    return step_spike_counts(R[:-1], R[1:], margin_deg)
+
+
+def step_spike_counts(R0: np.ndarray, R1: np.ndarray, margin_deg: float = SPIKE_MARGIN_DEG,
+                      orders: tuple[str, ...] = ORDERS) -> np.ndarray:
+    """Steps from ``R0`` to ``R1`` that would be Euler spikes, counted in each of ``orders``.
+
+    Only candidate steps are decomposed: the Euler rates are bounded, ``|db| <= w``
+    and ``|da|, |dc| <= w / cos b`` for an angular speed w, and ``|b|`` grows
+    by at most the turn theta within a step, so a step with
+    ``theta / cos(|b|max + theta) <= theta + margin`` cannot be a spike.
+
+    Parameters
+    ----------
+    R0, R1 : (N, ..., 3, 3) array_like
+        The rotations before and after each step (e.g. frames f and f+1 of any set of frames).
+    margin_deg : float
+    orders : tuple of str
+
+    Returns
+    -------
+    (len(orders),) int ndarray
+    """
+    R0 = np.asarray(R0, dtype=np.float64)
+    R1 = np.asarray(R1, dtype=np.float64)
+    out = np.zeros(len(orders), dtype=np.int64)
+    if R0.size == 0:
         return out
-    th = np.radians(rotation_steps(R))
+    tr = np.einsum("n...ij,n...ij->n...", R0, R1)
+    th = 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))  # the turn, as rotation_steps
     cos_t, sin_t = np.cos(th), np.sin(th)
-    for n, order in enumerate(ORDERS):
+    for n, order in enumerate(orders):
         i, _, k, _ = _parse_order(order)
-        sb = np.abs(R[..., i, k])
-        top = np.minimum(np.maximum(sb[1:], sb[:-1]), 1.0)  # sin of the larger |b| of the two frames
+        top = np.minimum(np.maximum(np.abs(R0[..., i, k]), np.abs(R1[..., i, k])), 1.0)  # sin of the larger |b|
         # cos(|b| + theta), floored at 0 where |b| + theta passes 90 degrees
         cb = np.maximum(np.sqrt(1.0 - top * top) * cos_t - top * sin_t, 0.0)
         cand = th * (1.0 - cb) > np.radians(margin_deg) * cb
         if not cand.any():
             continue
-        f, *rest = np.nonzero(cand)
-        x0 = matrix_to_euler(R[(f, *rest)], order)
-        x1 = matrix_to_euler(R[(f + 1, *rest)], order)
+        x0 = matrix_to_euler(R0[cand], order)
+        x1 = matrix_to_euler(R1[cand], order)
         y1 = x1 + np.array([180.0, 0.0, 180.0])
         y1[:, 1] = 180.0 - x1[:, 1]
         step = np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
         out[n] = int(np.count_nonzero(step > np.degrees(th[cand]) + margin_deg))
     return out
+
+
+class RestSteps:
+    """Frame steps of a skeleton's motion, prepared to count their Euler spikes under other rest poses.
+
+    Re-posing the rest by ``Q[s]`` (each joint's global rotation from the old rest
+    to the new one) turns joint s's rotation relative to its parent into
+    ``Q[parent] L Q[s]^T`` (the root's into ``L Q[root]^T``): the same turns,
+    on another path through the rotations, nearer gimbal lock or farther. The
+    bound of :func:`step_spike_counts` is evaluated from the one entry of
+    the new rotation each order needs (``Q[p][i] . L . Q[s][k]``, for all rests
+    at once); only the steps it cannot clear are re-posed in full and decomposed.
+
+    Parameters
+    ----------
+    local : (F, S, 3, 3) array_like
+        Rotations relative to the parents (the root: to the world), axis 0 time.
+    parent : (S,) int array_like
+        -1 for the root; parents precede children.
+    steps : (N,) int array_like, optional
+        Only the steps from these frames to the next (default: every step).
+    margin_deg : float
+    """
+
+    def __init__(self, local: np.ndarray, parent: np.ndarray, steps: np.ndarray | None = None,
+                 margin_deg: float = SPIKE_MARGIN_DEG):
+        L = np.asarray(local, dtype=np.float64)
+        self.parent = np.asarray(parent, dtype=np.int64)
+        self.margin_deg = float(margin_deg)
+        if steps is None:
+            R0, R1 = L[:-1], L[1:]
+        else:
+            f = np.asarray(steps, dtype=np.int64)
+            R0, R1 = L[f], L[f + 1]
+        N, S = R0.shape[0], L.shape[1]
+        # both ends of every step, joint by joint: (S, 2N, 9), one copy of the take
+        A = np.empty((S, 2 * N, 9))
+        A[:, :N] = R0.reshape(N, S, 9).transpose(1, 0, 2)
+        A[:, N:] = R1.reshape(N, S, 9).transpose(1, 0, 2)
+        self.A, self.N, self.S = A, N, S
+        tr = np.einsum("snx,snx->sn", A[:, :N], A[:, N:])
+        self.th = 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))  # (S, N), the same for every rest
+        # the bound of step_spike_counts as a floor on |sin b|: a step can spike only where
+        # |b| > arccos(theta / (theta + margin)) - theta (everywhere when that is negative)
+        lim = np.arccos(self.th / (self.th + np.radians(margin_deg))) - self.th
+        self.tau = np.where(lim > 0.0, np.sin(np.clip(lim, 0.0, 0.5 * np.pi)), -1.0)[..., None]  # (S, N, 1)
+
+    def count(self, Q: np.ndarray, orders: tuple[str, ...] = ORDERS) -> tuple[np.ndarray, np.ndarray]:
+        """Spikes with each of K rest poses, in each order.
+
+        Parameters
+        ----------
+        Q : (K, S, 3, 3) array_like
+            The rests' global rotations (from the motion's own rest).
+        orders : tuple of str
+
+        Returns
+        -------
+        spikes : (K, len(orders)) int ndarray
+        near : (K, len(orders)) int ndarray
+            Steps the bound could not clear (joints moving near lock): fewer is farther from a spike.
+        """
+        Q = np.asarray(Q, dtype=np.float64)
+        K, S, N = Q.shape[0], self.S, self.N
+        spikes = np.zeros((K, len(orders)), dtype=np.int64)
+        near = np.zeros((K, len(orders)), dtype=np.int64)
+        if N == 0 or K == 0 or S == 0:
+            return spikes, near
+        par = self.parent
+        Qp = np.where((par >= 0)[None, :, None, None], Q[:, np.maximum(par, 0)], np.eye(3))
+        for n, order in enumerate(orders):
+            i, _, k, _ = _parse_order(order)
+            # entry (i, k) of Qp L Qs^T = sum_ab Qp[i, a] L[a, b] Qs[k, b]: one 9-vector per joint and rest
+            W = np.einsum("ksa,ksb->skab", Qp[:, :, i, :], Q[:, :, k, :]).reshape(S, K, 9).transpose(0, 2, 1).copy()
+            e = np.abs(np.matmul(self.A, W))  # (S, 2N, K)
+            cand = np.maximum(e[:, :N], e[:, N:]) > self.tau
+            ss, nn, kk = np.nonzero(cand)
+            near[:, n] = np.bincount(kk, minlength=K)
+            if ss.size == 0:
+                continue
+            P, C = Qp[kk, ss], np.swapaxes(Q[kk, ss], -1, -2)
+            x0 = matrix_to_euler(P @ self.A[ss, nn].reshape(-1, 3, 3) @ C, order)
+            x1 = matrix_to_euler(P @ self.A[ss, nn + N].reshape(-1, 3, 3) @ C, order)
+            y1 = x1 + np.array([180.0, 0.0, 180.0])
+            y1[:, 1] = 180.0 - x1[:, 1]
+            step = np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
+            bad = step > np.degrees(self.th[ss, nn]) + self.margin_deg
+            spikes[:, n] = np.bincount(kk[bad], minlength=K)
+        return spikes, near
+
+
+def rest_spike_counts(local: np.ndarray, parent: np.ndarray, Q: np.ndarray, steps: np.ndarray | None = None,
+                      margin_deg: float = SPIKE_MARGIN_DEG, orders: tuple[str, ...] = ORDERS) -> tuple[np.ndarray, np.ndarray]:
+    """Euler spikes of a skeleton's motion with each of K other rest poses ``Q`` (K, S, 3, 3), in each
+    order: ``RestSteps(local, parent, steps, margin_deg).count(Q, orders)`` (see :class:`RestSteps`)."""
+    return RestSteps(local, parent, steps, margin_deg).count(Q, orders)

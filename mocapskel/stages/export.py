@@ -23,13 +23,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion
-from ..solvers.bvh_pose import BvhSkeleton, choose_rotation_order, global_to_local_rot, lab_rot_to_bvh, lab_to_bvh
+from ..errors import DataError
+from ..solvers.bvh_pose import (BvhSkeleton, choose_rest_and_order, choose_rotation_order, global_to_local_rot,
+                                bvh_rot_to_lab, lab_rot_to_bvh, lab_to_bvh, local_to_global_rot, rerest_local)
 from ..model.tree import depth_first_order, tree_from
 from ..model.kinematics import joint_points_rest
 from ..model.naming import SCHEMES, Naming, name_skeleton
-from ..solvers.rotations import rotation_between
+from ..solvers.rotations import ORDERS, rotation_between
 
-VERSION = 5
+VERSION = 6
 
 UPS = ("y", "z")
 UNITS = ("cm", "mm", "m")
@@ -43,11 +45,18 @@ class Params:
     units: str = "cm"
     order: str = "auto"
     """Rotation channel order of every joint; "auto": the order with the fewest Euler spikes
-    (channel steps beyond the joint's turn plus 5 degrees), ZXY among equals unless some joint
-    comes within 30 degrees of gimbal lock in it, then the order that keeps joints farthest from
-    lock (:func:`~mocapskel.solvers.bvh_pose.choose_rotation_order`)."""
+    (channel steps beyond the joint's turn plus 5 degrees), chosen with the rest frame (below), or
+    for a given rest ZXY among equals unless some joint comes within 30 degrees of gimbal lock in
+    it, then the order that keeps joints farthest from lock
+    (:func:`~mocapskel.solvers.bvh_pose.choose_rotation_order`)."""
     names: str = "auto"
     rest: str = "frame"
+    rest_frame: int | str = "auto"
+    """With ``rest="frame"``, the frame whose pose is the rest pose: a frame number; "skeleton": the
+    skeleton's own rest pose (``solve`` keeps one skeleton, and its OFFSETs, across takes); "auto":
+    chosen with the order for the fewest Euler spikes
+    (:func:`~mocapskel.solvers.bvh_pose.choose_rest_and_order`) among the frames where the whole
+    subject is seen (:func:`rest_candidates`), the skeleton's rest frame preferred among equals."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,6 +68,11 @@ class BvhMotion:
     naming   : how the joints were named (and why).
     rest     : the rest pose written ("frame", "tpose" or "apose").
     notes    : what the user should know (a rest pose asked for but not possible ...).
+    rest_frame : the frame whose pose is the rest pose (None for a T-pose or A-pose rest; with
+               ``Params.rest_frame="skeleton"`` the skeleton's, for ``solve`` a frame of the take it was fitted to).
+    rest_rot : (S, 3, 3) lab axes: each joint's segment turned from the skeleton's rest pose to the
+               BVH's (the identity where they are the same), e.g. a marker's offset in the BVH's rest
+               is ``rest_rot @ Skeleton.marker_local``.
     """
 
     skeleton: BvhSkeleton
@@ -71,10 +85,12 @@ class BvhMotion:
     notes: tuple[str, ...] = ()
     up: str = "y"
     units: str = "cm"
+    rest_frame: int | None = None
+    rest_rot: np.ndarray | None = None
 
     def report(self) -> dict:
         """The report's ``export`` entry."""
-        out = {"names": self.naming.report() if self.naming else None, "rest": self.rest,
+        out = {"names": self.naming.report() if self.naming else None, "rest": self.rest, "rest_frame": self.rest_frame,
                "root": self.skeleton.names[0], "notes": list(self.notes)}
         if self.naming is not None and self.segment is not None:
             out["joints"] = {self.skeleton.names[i]: int(s) for i, s in enumerate(self.segment.tolist())}
@@ -146,6 +162,34 @@ def rest_rotations(skel, new_parent: np.ndarray, r: np.ndarray, naming: Naming, 
     return Q
 
 
+def rest_candidates(motion: Motion) -> np.ndarray:
+    """Frames whose pose may be the rest pose: every segment seen (as many of its markers as the rigid
+    stage asks of its rest frame: three, or all it has if fewer), or as many segments as any frame sees,
+    and the frame's marker rms no outlier among those frames (within three robust standard deviations,
+    1.4826 MAD, of their median: not a pose the fit got wrong, such as a limb flipped onto a marker
+    that jumped). Empty when no marker residual is known."""
+    res = np.asarray(motion.residual, dtype=np.float64)
+    seg = np.asarray(motion.skeleton.marker_segment)
+    S = len(motion.skeleton.parent)
+    if res.ndim != 2 or res.shape[1] != seg.size or res.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    seen = np.isfinite(res)
+    on = seg >= 0
+    count = np.zeros((res.shape[0], S), dtype=np.int64)
+    for s in range(S):
+        count[:, s] = seen[:, on & (seg == s)].sum(1)
+    need = np.minimum(3, np.bincount(seg[on], minlength=S))
+    full = (count >= need).sum(1)
+    ok = (full == full.max()) & seen.any(1)
+    if not ok.any():
+        return np.zeros(0, dtype=np.int64)
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(np.nanmean(np.where(seen[ok], res[ok] ** 2, np.nan), axis=1))
+    f = np.flatnonzero(ok)
+    med = np.median(rms)
+    return f[rms <= med + 3.0 * 1.4826 * np.median(np.abs(rms - med))]
+
+
 def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     if params.up not in UPS:
         raise ValueError(f"up must be one of {UPS}")
@@ -155,6 +199,8 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
         raise ValueError(f"names must be one of {NAMES}")
     if params.rest not in RESTS:
         raise ValueError(f"rest must be one of {RESTS}")
+    if isinstance(params.rest_frame, str) and params.rest_frame not in ("auto", "skeleton"):
+        raise ValueError("rest_frame must be a frame number, 'auto' or 'skeleton'")
     sk = motion.skeleton
     naming = name_skeleton(sk, motion, params.names)
     notes: list[str] = []
@@ -199,18 +245,41 @@ def run(motion: Motion, params: Params = Params()) -> BvhMotion:
     par = np.where(parent[perm] >= 0, inv[np.maximum(parent[perm], 0)], -1)
     offset = lab_to_bvh(offset_lab[perm], params.up, params.units)
     offset[par < 0] = 0.0
+    end_site = lab_to_bvh(end_lab[perm], params.up, params.units)
     local = global_to_local_rot(par, lab_rot_to_bvh(rot, params.up, joints=perm))
+    rest_rot = Q[perm] if rest != "frame" else np.broadcast_to(np.eye(3), (perm.size, 3, 3)).copy()
+    order = params.order
+    rest_frame = int(sk.rest_frame) if rest == "frame" else None
+    if rest == "frame" and params.rest_frame != "skeleton":
+        F = local.shape[0]
+        if params.rest_frame == "auto":
+            orders = ORDERS if order == "auto" else (order.upper(),)
+            r, order = choose_rest_and_order(local, par, rest_candidates(motion), int(sk.rest_frame), orders)
+        else:
+            r = int(params.rest_frame)
+            if not 0 <= r < F:
+                raise DataError(f"rest frame {r} is outside the take's {F} frames — choose a frame from 0 to {F - 1}",
+                                motion.source or None)
+        if r != int(sk.rest_frame):
+            # frame r's pose as the rest: every joint's rest turned by its global rotation at r
+            Q = local_to_global_rot(par, local[r : r + 1])[0]
+            local = rerest_local(par, local, Q)
+            sub = par >= 0
+            offset[sub] = np.einsum("sij,sj->si", Q[par[sub]], offset[sub])
+            end_site = np.einsum("sij,sj->si", Q, end_site)
+            rest_rot = bvh_rot_to_lab(Q, params.up)
+        rest_frame = r
     bskel = BvhSkeleton(
         names=tuple(naming.names[i] for i in perm),
         parent=par,
         offset=offset,
-        end_site=lab_to_bvh(end_lab[perm], params.up, params.units),
-        order=choose_rotation_order(local) if params.order == "auto" else params.order,
+        end_site=end_site,
+        order=choose_rotation_order(local) if order == "auto" else order,
     )
     rate = motion.rate if motion.rate and motion.rate > 0 else 1.0
     return BvhMotion(bskel, lab_to_bvh(root_world, params.up, params.units), local, 1.0 / rate,
                      segment=perm, naming=naming, rest=rest, notes=tuple(notes),
-                     up=params.up, units=params.units)
+                     up=params.up, units=params.units, rest_frame=rest_frame, rest_rot=rest_rot)
 
 
 def joint_positions_lab(motion: Motion, bvh: BvhMotion) -> np.ndarray:
