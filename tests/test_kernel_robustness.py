@@ -257,3 +257,10 @@ def test_far_from_the_origin_the_kernels_give_what_they_give_near_it(seed: int, 
     for k in near:  # NaN in the same places (a group in line has no frame), the rest alike
         assert np.isfinite(near[k]).any() or k == "frame test", k
         np.testing.assert_allclose(far[k], near[k], rtol=0, atol=1e-7 * size, err_msg=k)
+
+
+def test_the_geometric_sphere_fit_of_samples_on_one_spot_is_a_failed_fit() -> None:
+    """Five samples of one point: the fit ends on them (radius 0) and says it failed; the centre's
+    information took the direction of a sample on the centre itself, 0 / 0 (a RuntimeWarning)."""
+    fit = _answers(sphere_mle, np.full((5, 3), 1e5))
+    assert not fit and fit.reason
