@@ -38,7 +38,7 @@ def two_bodies(draw) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(A (F, Na, 3), B (F, Nb, 3), joint (F, 3)): two bodies on a ball joint, spoilt as drawn."""
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     F = draw(st.integers(1, 40))
-    na, nb = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    na, nb = (draw(st.integers(1, 6) | st.sampled_from([21, 52])) for _ in "ab")  # > 20, > 50: other paths
     size = draw(st.sampled_from([100.0, 1e-3]))
     shapes = []
     for n in (na, nb):
@@ -184,6 +184,7 @@ def test_score_answers(data) -> None:
 @given(two_bodies())
 def test_jmv_and_mtb_answer(data) -> None:
     A, B, _ = data
+    A, B = A[:, :8], B[:, :8]  # joints are fitted to a few markers a segment (the four-point start tries them all)
     _answers(jmv.jmv_joint, A, B, max_iter=10)
     _answers(jmv.jmv_joint_long, A, B, max_iter=10, max_frames=8)
     basis = _answers(mtb.mtb_basis, A)
