@@ -376,21 +376,18 @@ def procrustes_shape(
         lam = np.linalg.eigvalsh(np.cov(pts.T, bias=True))
         return bool(lam[2] > 0 and lam[1] > collinear_tol**2 * lam[2])
 
-    start = ref_frame if ref_frame is not None and solvable(ref_frame) else best
-    if not solvable(start):
+    if ref_frame is not None and solvable(ref_frame):
+        start = ref_frame
+    elif solvable(best):
+        start = best
+    else:
         # that frame's points lie in one line or on one spot (two labels on one point, a body seen
         # edge-on): start from the solvable frame with the most visible points instead
         cand = np.flatnonzero(_solvable_frames(obs, vis, collinear_tol))
         cand = cand[np.argsort(-n_vis[cand], kind="stable")]
-        start = next((int(f) for f in cand if solvable(int(f))), start)
-    nan_out = (
-        np.full((P, 3), np.nan),
-        np.full((F, 3, 3), np.nan),
-        np.full((F, 3), np.nan),
-        np.full(F, np.nan),
-    )
-    if not solvable(start):
-        return nan_out
+        start = next((int(f) for f in cand if solvable(int(f))), None)
+        if start is None:
+            return (np.full((P, 3), np.nan), np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan), np.full(F, np.nan))
 
     shape = np.where(vis[start][:, None], obs[start], np.nan)
     for _ in range(max(int(iters), 1)):

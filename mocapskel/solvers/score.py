@@ -588,7 +588,13 @@ def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.nda
         B = P[lo : lo + 1024]
         complete = np.flatnonzero(np.isfinite(np.einsum("fki->f", B)))
         if complete.size:
-            seen = True
+            if not seen:  # the first complete frame alone first: it is nearly always out of line
+                seen = True
+                c0 = B[complete[0]] - B[complete[0]].mean(0)
+                lam = np.linalg.eigvalsh(c0.T @ c0)
+                if lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]:
+                    first = lo + int(complete[0])
+                    break
             X = B[complete] - B[complete].mean(1, keepdims=True)
             lam = np.linalg.eigvalsh(np.swapaxes(X, 1, 2) @ X)
             good = (lam[:, 2] > 0) & (lam[:, 1] > COLLINEAR_TOL**2 * lam[:, 2])
