@@ -376,15 +376,18 @@ def procrustes_shape(
         lam = np.linalg.eigvalsh(np.cov(pts.T, bias=True))
         return bool(lam[2] > 0 and lam[1] > collinear_tol**2 * lam[2])
 
-    start = ref_frame if ref_frame is not None and solvable(ref_frame) else best
-    nan_out = (
-        np.full((P, 3), np.nan),
-        np.full((F, 3, 3), np.nan),
-        np.full((F, 3), np.nan),
-        np.full(F, np.nan),
-    )
-    if not solvable(start):
-        return nan_out
+    if ref_frame is not None and solvable(ref_frame):
+        start = ref_frame
+    elif solvable(best):
+        start = best
+    else:
+        # that frame's points lie in one line or on one spot (two labels on one point, a body seen
+        # edge-on): start from the solvable frame with the most visible points instead
+        cand = np.flatnonzero(_solvable_frames(obs, vis, collinear_tol))
+        cand = cand[np.argsort(-n_vis[cand], kind="stable")]
+        start = next((int(f) for f in cand if solvable(int(f))), None)
+        if start is None:
+            return (np.full((P, 3), np.nan), np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan), np.full(F, np.nan))
 
     shape = np.where(vis[start][:, None], obs[start], np.nan)
     for _ in range(max(int(iters), 1)):
@@ -415,3 +418,14 @@ def procrustes_shape(
         shape = shape @ R0[0].T + t0[0]
     R, t, rms = kabsch(shape, obs, collinear_tol=collinear_tol)
     return shape, R, t, rms
+
+
+def _solvable_frames(obs: np.ndarray, vis: np.ndarray, collinear_tol: float) -> np.ndarray:
+    """(F,) whether each frame's visible points of ``obs`` (F, P, 3) can be aligned: three or more,
+    not collinear (the test of :func:`procrustes_shape`, for all frames at once)."""
+    w = vis.astype(float)
+    n = np.maximum(w.sum(1), 1.0)
+    x = np.where(vis[..., None], obs, 0.0)
+    d = (x - (x.sum(1) / n[:, None])[:, None, :]) * w[..., None]
+    lam = np.linalg.eigvalsh(np.einsum("fpi,fpj->fij", d, d) / n[:, None, None])
+    return (vis.sum(1) >= 3) & (lam[:, 2] > 0) & (lam[:, 1] > collinear_tol**2 * lam[:, 2])

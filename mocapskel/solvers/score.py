@@ -578,22 +578,34 @@ def sara(
 
 
 def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """Per-frame pose of a marker group against its first complete frame; a reason on failure."""
+    """Per-frame pose of a marker group against its first complete frame whose markers are not in one line
+    (two labels on one point, a body seen edge-on, are no reference); a reason on failure."""
     F, K, _ = P.shape
     if K < 3:
         return f"group {name} has {K} marker(s): at least 3 non-collinear markers are needed for its rotation"
-    first = -1
-    for lo in range(0, F, 1024):  # the first complete frame, usually among the first few
-        complete = np.isfinite(np.einsum("fki->f", P[lo : lo + 1024]))
-        if complete.any():
-            first = lo + int(np.argmax(complete))
-            break
-    if first < 0:
+    first, seen = -1, False
+    for lo in range(0, F, 1024):  # the first complete frame out of line, usually among the first few
+        B = P[lo : lo + 1024]
+        complete = np.flatnonzero(np.isfinite(np.einsum("fki->f", B)))
+        if complete.size:
+            if not seen:  # the first complete frame alone first: it is nearly always out of line
+                seen = True
+                c0 = B[complete[0]] - B[complete[0]].mean(0)
+                lam = np.linalg.eigvalsh(c0.T @ c0)
+                if lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]:
+                    first = lo + int(complete[0])
+                    break
+            X = B[complete] - B[complete].mean(1, keepdims=True)
+            lam = np.linalg.eigvalsh(np.swapaxes(X, 1, 2) @ X)
+            good = (lam[:, 2] > 0) & (lam[:, 1] > COLLINEAR_TOL**2 * lam[:, 2])
+            if good.any():
+                first = lo + int(complete[np.argmax(good)])
+                break
+    if not seen:
         return f"group {name}: no frame where all its {K} markers are seen (needed for the reference shape)"
-    ref = P[first] - P[first].mean(0)
-    lam = np.linalg.eigvalsh(ref.T @ ref)
-    if not (lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]):
+    if first < 0:
         return f"group {name}: its markers are collinear, so its rotation about their line is undetermined"
+    ref = P[first] - P[first].mean(0)
     R, t = shape_poses(ref, P)
     return R, t, ref
 

@@ -111,8 +111,10 @@ def sphere_mle(
 
 
 def _centre_information(v: np.ndarray, idx: np.ndarray, k: int) -> np.ndarray:
-    """sum_p sum_i (u_pi - mean_p u)(u_pi - mean_p u)^T with unit directions u."""
-    u = v / np.linalg.norm(v, axis=1)[:, None]
+    """sum_p sum_i (u_pi - mean_p u)(u_pi - mean_p u)^T with unit directions u (none for a sample on the
+    centre itself)."""
+    n = np.linalg.norm(v, axis=1)
+    u = v / np.where(n > 0, n, 1.0)[:, None]
     cnt = np.bincount(idx, minlength=k).astype(float)
     mu = np.stack([np.bincount(idx, weights=u[:, j], minlength=k) for j in range(3)], 1)
     mu = mu / np.maximum(cnt, 1)[:, None]

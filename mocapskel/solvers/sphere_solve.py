@@ -134,7 +134,11 @@ def _centre_for(m: _Moments, s: float, ref: np.ndarray, w: np.ndarray) -> tuple[
     B = m.M2 - (w * s)[:, None, None] * np.eye(3)
     A = B.sum(0)
     rhs = np.einsum("kij,kj->i", B, m.mean - ref) + 0.5 * m.T.sum(0)
-    return ref + np.linalg.solve(A, rhs), A
+    try:
+        x = np.linalg.solve(A, rhs)
+    except np.linalg.LinAlgError:  # singular to rounding (s at the edge of its range): no centre
+        x = np.full(3, np.nan)
+    return ref + x, A
 
 
 def _secular(s: float, m: _Moments, ref: np.ndarray, w: np.ndarray, V: np.ndarray, tr: np.ndarray) -> float:
@@ -147,7 +151,8 @@ def _secular(s: float, m: _Moments, ref: np.ndarray, w: np.ndarray, V: np.ndarra
 
 
 def _estimate_s(m: _Moments, ref: np.ndarray, w: np.ndarray, s_hi: float) -> float | None:
-    """Consistent noise variance (root of F); None when there is none below s_hi."""
+    """Consistent noise variance (root of F); None when there is none below s_hi, or F cannot be
+    evaluated on the way (A(s) singular to rounding: samples barely out of a plane)."""
     n = np.where(m.n > 0, m.n, 1.0)
     tr = np.einsum("kii->k", m.M2)
     V = np.where(m.n > 0, m.Q - tr**2 / n, 0.0)
@@ -158,7 +163,10 @@ def _estimate_s(m: _Moments, ref: np.ndarray, w: np.ndarray, s_hi: float) -> flo
     fhi = _secular(hi, m, ref, w, V, tr)
     if not fhi < 0:
         return None
-    return brentq(lambda s: _secular(s, m, ref, w, V, tr), 0.0, hi, xtol=1e-15 * hi, rtol=1e-15, maxiter=200)
+    try:
+        return brentq(lambda s: _secular(s, m, ref, w, V, tr), 0.0, hi, xtol=1e-15 * hi, rtol=1e-15, maxiter=200)
+    except (ValueError, RuntimeError):  # F NaN on the way, or no convergence
+        return None
 
 
 def brentq(f, a: float, b: float, *, xtol: float, rtol: float, maxiter: int) -> float:
