@@ -51,6 +51,8 @@ class CalibrationResult:
     root_pos : (F, 3) root origin per frame
     rms : (2,) marker rms (mm) before and after
     n_iter : iterations run
+    objective : the minimised cost at the end (mm^2): the markers' squared residuals plus every
+        weighted prior term
     """
 
     origin: np.ndarray
@@ -59,6 +61,7 @@ class CalibrationResult:
     root_pos: np.ndarray
     rms: tuple[float, float]
     n_iter: int
+    objective: float = float("nan")
 
 
 def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
@@ -362,6 +365,7 @@ def refine_skeleton(
     joint_prior: float = 0.0,
     prior_joints: set | None = None,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
+    prior_weights: np.ndarray | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -390,6 +394,11 @@ def refine_skeleton(
     prior_joints : the child segments whose joints the prior holds (None: all).
     anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
         from another (a refinement of it); None: the start.
+    prior_weights : (S, 2) instead of ``joint_prior`` and ``prior_joints``: the weight (for the whole
+        fit, not per frame) of the prior on child ``c``'s joint relative to the marker centroid of
+        its parent ([c, 0]) and of its own segment ([c, 1]); 0 leaves that term out. A Gaussian
+        prior of standard deviation sigma (mm, per axis) against markers of noise sigma_n has the
+        weight sigma_n^2 / sigma^2.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -406,7 +415,10 @@ def refine_skeleton(
     held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
             if parent[int(c)] >= 0]
     k_hold = float(hold_weight) * F
-    A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    if prior_weights is None:
+        A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    else:
+        A, k_prior = _weighted_prior_operator(pr, parent, np.asarray(prior_weights, dtype=float)), 1.0
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
@@ -559,6 +571,7 @@ def refine_skeleton(
         # a lost worker process (killed, out of memory): the whole fit again in this process alone,
         # which gives the same result
         p, R, d, l, cost, it = iterate(1)
+    objective = float(cost)
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
@@ -583,7 +596,7 @@ def refine_skeleton(
             new_origin[s] = new_origin[parent[s]] + d[s]
     return CalibrationResult(
         origin=new_origin, marker_local=l, rot=R, root_pos=p,
-        rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it,
+        rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it, objective=objective,
     )
 
 
@@ -620,6 +633,28 @@ def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = N
                 for m in ms:
                     row[pr.gl[m] + k] -= 1.0 / len(ms)
                 rows.append(row)
+    return np.array(rows).reshape(-1, pr.ng)
+
+
+def _weighted_prior_operator(pr: _Problem, parent: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """:func:`_joint_prior_operator` for every joint, each block of three rows scaled by the square root
+    of its weight (``weights`` (S, 2): child ``c``'s term in its parent's frame, then in its own), so that
+    ``|A g - A g0|^2`` is the weighted sum of the squared terms; terms of weight 0 left out."""
+    rows = []
+    for c in pr.kids:
+        p = int(parent[c])
+        for j, (s, with_d) in enumerate(((p, True), (c, False))):
+            ms = [int(m) for m in pr.used if pr.seg[m] == s]
+            w = float(weights[c, j])
+            if not ms or not w > 0:
+                continue
+            for k in range(3):
+                row = np.zeros(pr.ng)
+                if with_d:
+                    row[pr.gi[c] + k] = 1.0
+                for m in ms:
+                    row[pr.gl[m] + k] -= 1.0 / len(ms)
+                rows.append(np.sqrt(w) * row)
     return np.array(rows).reshape(-1, pr.ng)
 
 
