@@ -31,6 +31,7 @@ import numpy as np
 
 from ..artifacts import Skeleton
 from .calibrate import pick_frames, refine_skeleton
+from .deepen import deepen_joints
 from .motion import _centres_by_edges, solve
 from .refinement import refine_frame_count
 from .rest_pose import _rest_markers
@@ -70,7 +71,8 @@ def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
     return out
 
 
-def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float) -> Skeleton:
+def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float,
+               mean: str = "deepened", hinge_ratio: float = 0.6) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -84,11 +86,15 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     ref = int(np.searchsorted(use, start.rest_frame))
     c = _centres_by_edges(start, centres)
     pose = solve(start, pts[use], c[use])
+    centre = start
+    if mean == "deepened":
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
     sn = noise_sigma(start)
-    sig = prior_sigmas(start, scale)
+    sig = prior_sigmas(centre, scale)
     w = np.where(np.isfinite(sig), sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                          pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w)
+                          pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
+                          anchor=(centre.origin, centre.marker_local))
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = res.objective / (2.0 * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
     info = dict(start.info)

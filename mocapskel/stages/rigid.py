@@ -109,6 +109,10 @@ class Params:
     """With ``joint_model="map"``: the prior's standard deviation on a joint, relative to each of its
     two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
     distance of its markers from the joint)."""
+    prior_mean: str = "deepened"
+    """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
+    put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
+    that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move)."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -278,7 +282,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     def one(i: int):
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations,
-                         scale=params.prior_scale)
+                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
