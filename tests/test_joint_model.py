@@ -59,7 +59,7 @@ def test_map_joints_on_the_active_range_of_motion():
 
 def test_prior_sigmas_scale_with_the_segments_reach():
     """Each prior's sigma is the scale times the rms distance of the segment's markers from the joint,
-    computed here independently; the root has none; the noise is the rigid fits' per-axis rms."""
+    computed here independently; the root has none."""
     take = make(active_rom(3, frames=600))
     skel = rigid.run(_joints(take), rigid.Params(joint_model="map", refine_frames=0))
     sig = prior_sigmas(skel, 0.5)
@@ -69,8 +69,17 @@ def test_prior_sigmas_scale_with_the_segments_reach():
         for k, s in enumerate((skel.parent[c], c)):
             d = pos[skel.marker_segment == s] - skel.origin[c]
             assert sig[c, k] == pytest.approx(0.5 * np.sqrt(np.mean(np.sum(d**2, axis=1))))
-    n = skel.noise[np.isfinite(skel.noise)]
-    assert noise_sigma(skel) == pytest.approx(max(np.sqrt(np.mean(n**2) / 3), 0.1))
+
+
+def test_noise_from_the_markers_alone():
+    """The model's marker noise per axis, from the segments' markers as rigid shapes: the generator's
+    1 mm (and 3 mm) Gaussian noise, within 5 %; a noise-free take gets the floor."""
+    for sigma in (1.0, 3.0):
+        take = make(Recipe(kind="human", seed=4, frames=600, noise_mm=sigma))
+        got = noise_sigma(take.markers.points, np.asarray(take.truth.marker_segment))
+        assert got == pytest.approx(sigma, rel=0.05)
+    take = make(Recipe(kind="human", seed=4, frames=600))
+    assert noise_sigma(take.markers.points, np.asarray(take.truth.marker_segment)) == 0.1
 
 
 def test_joint_model_must_be_rules_or_map():

@@ -51,8 +51,7 @@ class CalibrationResult:
     root_pos : (F, 3) root origin per frame
     rms : (2,) marker rms (mm) before and after
     n_iter : iterations run
-    objective : the minimised cost at the end (mm^2): the markers' squared residuals plus every
-        weighted prior term
+    objective : the minimised cost at the end (mm^2): squared marker residuals plus the weighted priors
     """
 
     origin: np.ndarray
@@ -243,7 +242,6 @@ class _Problem:
             out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
         return out
 
-
     def fk(self, p, R, d, l):
         F = p.shape[0]
         P = np.empty((F, self.S, 3))
@@ -394,11 +392,9 @@ def refine_skeleton(
     prior_joints : the child segments whose joints the prior holds (None: all).
     anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
         from another (a refinement of it); None: the start.
-    prior_weights : (S, 2) instead of ``joint_prior`` and ``prior_joints``: the weight (for the whole
-        fit, not per frame) of the prior on child ``c``'s joint relative to the marker centroid of
-        its parent ([c, 0]) and of its own segment ([c, 1]); 0 leaves that term out. A Gaussian
-        prior of standard deviation sigma (mm, per axis) against markers of noise sigma_n has the
-        weight sigma_n^2 / sigma^2.
+    prior_weights : (S, 2) instead of ``joint_prior``: the weight (whole fit, not per frame) of the prior on
+        child c's joint relative to its parent's marker centroid ([c, 0]) and its own ([c, 1]); a Gaussian
+        of sigma (mm, per axis) against marker noise sigma_n weighs sigma_n^2 / sigma^2.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -418,7 +414,7 @@ def refine_skeleton(
     if prior_weights is None:
         A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
     else:
-        A, k_prior = _weighted_prior_operator(pr, parent, np.asarray(prior_weights, dtype=float)), 1.0
+        A, k_prior = _joint_prior_operator(pr, parent, weights=np.asarray(prior_weights, dtype=float)), 1.0
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
@@ -610,42 +606,24 @@ def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     return g
 
 
-def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None) -> np.ndarray:
+def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None,
+                          weights: np.ndarray | None = None) -> np.ndarray:
     """(3K, ng) linear map from the constant unknowns to every joint's position relative to the
     marker centroid of each of its two segments (in that segment's frame).
 
     In the parent ``p``'s frame the joint of child ``c`` sits at ``d_c`` from ``p``'s origin,
     so ``d_c - mean(l_m, m in p)``; in ``c``'s frame it is ``c``'s origin, ``-mean(l_m, m in c)``.
+    weights : (S, 2) each block of three rows scaled by the square root of child ``c``'s weight in its
+    parent's frame ([c, 0]) or its own ([c, 1]), blocks of weight 0 left out.
     """
     rows = []
     for c in pr.kids:
         if only is not None and c not in only:
             continue
         p = int(parent[c])
-        for s, with_d in ((p, True), (c, False)):
-            ms = [int(m) for m in pr.used if pr.seg[m] == s]
-            if not ms:
-                continue
-            for k in range(3):
-                row = np.zeros(pr.ng)
-                if with_d:
-                    row[pr.gi[c] + k] = 1.0
-                for m in ms:
-                    row[pr.gl[m] + k] -= 1.0 / len(ms)
-                rows.append(row)
-    return np.array(rows).reshape(-1, pr.ng)
-
-
-def _weighted_prior_operator(pr: _Problem, parent: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """:func:`_joint_prior_operator` for every joint, each block of three rows scaled by the square root
-    of its weight (``weights`` (S, 2): child ``c``'s term in its parent's frame, then in its own), so that
-    ``|A g - A g0|^2`` is the weighted sum of the squared terms; terms of weight 0 left out."""
-    rows = []
-    for c in pr.kids:
-        p = int(parent[c])
         for j, (s, with_d) in enumerate(((p, True), (c, False))):
             ms = [int(m) for m in pr.used if pr.seg[m] == s]
-            w = float(weights[c, j])
+            w = 1.0 if weights is None else float(weights[c, j])
             if not ms or not w > 0:
                 continue
             for k in range(3):

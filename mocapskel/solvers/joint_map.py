@@ -17,7 +17,9 @@ reaches from it). The MAP minimises
 over the refinement's frames (:func:`~mocapskel.solvers.calibrate.refine_skeleton` with
 ``prior_weights`` = sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole fit, while
 the markers add a term in every frame: where the motion fixes a joint, the data win; along a
-direction they leave free, the prior decides. Nothing is moved after the fit.
+direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
+the markers alone (each segment's markers as one rigid shape), so that every start is scored by the
+same model.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
@@ -35,19 +37,29 @@ from .deepen import deepen_joints
 from .motion import _centres_by_edges, solve
 from .refinement import refine_frame_count
 from .rest_pose import _rest_markers
+from .rigid_shape import procrustes_shape
 
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
 #: this, so that a noise-free take does not turn the priors' weights to zero.
 NOISE_FLOOR_MM = 0.1
 
 
-def noise_sigma(skel: Skeleton) -> float:
-    """The take's marker noise per axis (mm): the rms of the per-segment rigid fits' residuals (3-D)
-    over the segments, over sqrt(3); at least :data:`NOISE_FLOOR_MM`."""
-    n = np.asarray(skel.noise, dtype=float)
-    n = n[np.isfinite(n)]
-    s = float(np.sqrt(np.mean(n**2) / 3.0)) if n.size else 0.0
-    return max(s, NOISE_FLOOR_MM)
+def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
+    """The take's marker noise per axis (mm), from the markers alone (not the joints, which differ
+    between starts): every segment of three or more markers fitted as one rigid shape over the frames
+    ``points`` (F, M, 3), the residual sum of squares over its degrees of freedom (3 per seen marker,
+    less 6 for each frame's pose); at least :data:`NOISE_FLOOR_MM`."""
+    sse, dof = 0.0, 0.0
+    for s in np.unique(group[group >= 0]):
+        obs = points[:, group == s]
+        if obs.shape[1] < 3:
+            continue
+        _, _, _, rms = procrustes_shape(obs)
+        n = np.isfinite(obs).all(-1).sum(1)
+        ok = np.isfinite(rms) & (n >= 3)
+        sse += float(np.sum(rms[ok] ** 2 * n[ok]))
+        dof += float(np.sum(3 * n[ok] - 6))
+    return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
 
 
 def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
@@ -71,7 +83,7 @@ def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
     return out
 
 
-def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float,
+def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
@@ -89,7 +101,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     centre = start
     if mean == "deepened":
         centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
-    sn = noise_sigma(start)
+    sn = noise
     sig = prior_sigmas(centre, scale)
     w = np.where(np.isfinite(sig), sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],

@@ -20,7 +20,7 @@ from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
 from ..solvers.deepen import deepen_joints
 from ..solvers.leaf_hinges import centre_leaf_hinges
-from ..solvers.joint_map import map_refine
+from ..solvers.joint_map import map_refine, noise_sigma
 from ..solvers.mirror import centre_mirrored_pairs
 from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
 from ..solvers.refinement import _refine_once, refine
@@ -279,9 +279,14 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         except DataError:
             pass
 
+    pts = joints.topology.segments.markers.points
+    F = pts.shape[0]
+    noise = noise_sigma(pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)],
+                        np.asarray(skel.marker_segment))
+
     def one(i: int):
         c, st = starts[i]
-        out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations,
+        out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
