@@ -4,6 +4,7 @@ model's MAP with explicit priors (``joint_model="map"``), side by side.
     python -m bench.joint_model                       # markdown to stdout (slow: every case, both halves)
     python -m bench.joint_model --tune                # the prior's scale on the tuning seeds only
     python -m bench.joint_model --json --case realistic rom 1 --scales 0.5   # one case (internal)
+    python -m bench.joint_model --compact RAW.json 0.1   # rules against one scale, from a --raw file
 
 Generated cases are scored against their ground truth: joint rms over frames and joints (mean) and the
 worst joint's rms, after IK. Each is fitted twice from the same joints stage: with the true grouping and
@@ -173,6 +174,27 @@ def summary(raw: dict, scales: list[float]) -> str:
     return table(["case", "seeds", "grouping and tree"] + [f"{m} {k} (mm)" for m in modes for k in ("mean", "worst")], rows)
 
 
+def compact(raw: dict, scale: float) -> str:
+    """Rules against the model at one prior scale: per case and grouping, the tuning and checking halves'
+    mean over seeds of the joint rms (mean over joints, and the worst joint's)."""
+    m = f"map {scale:g}"
+    rows = []
+    for case in dict.fromkeys(k.rsplit(" ", 1)[0] for k in raw):
+        for tree in ("true", "auto"):
+            row = [case, "given" if tree == "true" else "found"]
+            for seeds in (TUNE, CHECK):
+                got = [raw[f"{case} {s}"][tree] for s in seeds if f"{case} {s}" in raw]
+                for mode in ("rules", m):
+                    ok = [g[mode] for g in got if "error" not in g and "error" not in g[mode]]
+                    fail = "" if len(ok) == len(got) else f" ({len(got) - len(ok)} failed)"
+                    row += [f"{np.mean([o['mean'] for o in ok]):.1f}{fail}" if ok else "error",
+                            f"{np.mean([o['worst'] for o in ok]):.0f}" if ok else ""]
+            rows.append(row)
+    head = ["case", "grouping and tree"] + [f"{h}: {mode} {k}" for h in ("tuning 1-3", "checking 4-6")
+                                           for mode in ("rules", "map") for k in ("mean (mm)", "worst joint (mm)")]
+    return table(head, rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--json", action="store_true")
@@ -182,7 +204,11 @@ def main() -> None:
     ap.add_argument("--scales", nargs="+", type=float, default=[0.5])
     ap.add_argument("--tune", action="store_true", help="the tuning seeds only, several scales")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
+    ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
     a = ap.parse_args()
+    if a.compact:
+        print(compact(json.loads(Path(a.compact[0]).read_text()), float(a.compact[1])))
+        return
     if a.case:
         print(json.dumps(generated_case(a.case[0], a.case[1], int(a.case[2]), a.scales)))
         return

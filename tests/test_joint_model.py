@@ -41,15 +41,18 @@ def test_where_the_data_fix_the_joints_the_prior_does_not_move_them():
     start, _ = _score(shifted, rigid.Params(joint_model="map", refine_frames=0), take.truth)
     assert start.joint_rms_mm > 8.0  # the prior's centre, and the start, are far off
     got, mot = _score(shifted, rigid.Params(joint_model="map"), take.truth)
-    assert got.joint_rms_mm < 0.2, got.joint_rms_each
-    assert max(got.joint_rms_each.values()) < 0.5
+    # measured 0.11 mm (the model's noise is at least 0.1 mm per axis: within it the prior has a say)
+    assert got.joint_rms_mm < min(0.5, 0.1 * start.joint_rms_mm), got.joint_rms_each
     info = mot.skeleton.info["refined"]
     assert info["joint_model"] == "map" and np.isfinite(info["neg_log_posterior"])
+    # centred where the joints stage put them (exactly, here), the prior leaves them there
+    got, _ = _score(j, rigid.Params(joint_model="map"), take.truth)
+    assert got.joint_rms_mm < 0.05, got.joint_rms_each
 
 
 def test_map_joints_on_the_active_range_of_motion():
     """1 mm noise, 2 mm soft tissue, gaps, true groups and tree: the model's joints within 4 mm rms of the
-    truth (measured 3.4 mm; the rules' 4.1 mm) and no joint worse than 12 mm (measured 9.3 mm)."""
+    truth (measured 3.3 mm; the rules' 4.1 mm) and no joint worse than 12 mm (measured 8.7; the rules' 11.8)."""
     take = make(active_rom(2, frames=1200))
     j = _joints(take)
     got, _ = _score(j, rigid.Params(joint_model="map"), take.truth)

@@ -105,10 +105,11 @@ class Params:
     stage's centres and its second estimate), the one of lowest negative log posterior is kept.
     ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
     ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
-    prior_scale: float = 0.5
+    prior_scale: float = 0.1
     """With ``joint_model="map"``: the prior's standard deviation on a joint, relative to each of its
     two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
-    distance of its markers from the joint)."""
+    distance of its markers from the joint): 15 mm for a thigh's 150. Chosen among 0.03, 0.1 and 0.3
+    on generated seeds 1-3 (BENCHMARKS, "Rules against the model")."""
     prior_mean: str = "deepened"
     """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
