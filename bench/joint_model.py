@@ -106,7 +106,8 @@ def real_case(name: str, scales: list[float]) -> dict:
                 out[label] = {"error": str(e).splitlines()[0][:80]}
                 continue
             bvh = Path(d) / f"{name}.bvh"
-            write_bvh(bvh, res.bvh)
+            b = res.bvh
+            write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
             r = subprocess.run([sys.executable, str(REALREF / "score.py"), name, str(bvh)], capture_output=True, text=True)
             out[label] = json.loads(r.stdout.strip().splitlines()[-1])
     return out
@@ -203,6 +204,7 @@ def main() -> None:
     ap.add_argument("--checks", metavar="REL")
     ap.add_argument("--scales", nargs="+", type=float, default=[0.5])
     ap.add_argument("--tune", action="store_true", help="the tuning seeds only, several scales")
+    ap.add_argument("--real-only", action="store_true", help="the real takes only")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
     ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
     a = ap.parse_args()
@@ -218,6 +220,13 @@ def main() -> None:
     if a.checks:
         print(json.dumps(checks_case(a.checks, a.scales)))
         return
+    if not a.real_only:
+        generated(a)
+    if not a.tune:
+        real(a)
+
+
+def generated(a) -> None:
     seeds = TUNE if a.tune else TUNE + CHECK
     text, raw = generated_table(seeds, a.scales)
     if a.raw:
@@ -228,8 +237,9 @@ def main() -> None:
     print(summary(raw, a.scales))
     print("\nEvery seed:\n")
     print(text)
-    if a.tune:
-        return
+
+
+def real(a) -> None:
     if (REALREF / "score.py").is_file():
         rows = []
         for name in sorted(p.name[: -len(".ref.npz")] for p in REALREF.glob("*.ref.npz")):
