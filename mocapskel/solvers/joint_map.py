@@ -2,15 +2,18 @@
 
 The model of a take (DESIGN, "One model, not rules"): markers are points fixed on rigid segments,
 the segments meet at fixed joint centres, and what is left is noise of standard deviation
-``sigma_n`` per axis, measured from the take (the per-segment rigid fits' residual). Where the
+``sigma_n`` per axis, measured from the take (:func:`noise_sigma`). Where the
 markers do not fix a joint (a hinge's centre along its axis, a shoulder along its swing axis), a
 prior says where it is:
 
     joint c, relative to the marker centroid of each of its two segments s (in s's frame),
-    ~ N(where the joints stage put it, sigma_cs^2 I),  sigma_cs = ``prior_sigma`` x size_cs,
+    ~ N(mean_c, sigma_cs^2 I),  sigma_cs = ``scale`` x size_cs,
 
 size_cs being the rms distance of segment s's markers from the joint at rest (how far the segment
-reaches from it). The MAP minimises
+reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
+hinge with a marker over its axis one limb half-width inside that marker along the axis
+(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.deepen.deepen_joints`, a surface
+marker sitting outside the bone, as the prior's mean). The MAP minimises
 
     sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
 
@@ -18,8 +21,7 @@ over the refinement's frames (:func:`~mocapskel.solvers.calibrate.refine_skeleto
 ``prior_weights`` = sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole fit, while
 the markers add a term in every frame: where the motion fixes a joint, the data win; along a
 direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
-the markers alone (each segment's markers as one rigid shape), so that every start is scored by the
-same model.
+the markers alone, so that every start is scored by the same model.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
