@@ -51,6 +51,7 @@ class CalibrationResult:
     root_pos : (F, 3) root origin per frame
     rms : (2,) marker rms (mm) before and after
     n_iter : iterations run
+    objective : the minimised cost at the end (mm^2): squared marker residuals plus the weighted priors
     """
 
     origin: np.ndarray
@@ -59,6 +60,7 @@ class CalibrationResult:
     root_pos: np.ndarray
     rms: tuple[float, float]
     n_iter: int
+    objective: float = float("nan")
 
 
 def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
@@ -240,7 +242,6 @@ class _Problem:
             out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
         return out
 
-
     def fk(self, p, R, d, l):
         F = p.shape[0]
         P = np.empty((F, self.S, 3))
@@ -362,6 +363,7 @@ def refine_skeleton(
     joint_prior: float = 0.0,
     prior_joints: set | None = None,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
+    prior_weights: np.ndarray | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -390,6 +392,9 @@ def refine_skeleton(
     prior_joints : the child segments whose joints the prior holds (None: all).
     anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
         from another (a refinement of it); None: the start.
+    prior_weights : (S, 2) instead of ``joint_prior``: the weight (whole fit, not per frame) of the prior on
+        child c's joint relative to its parent's marker centroid ([c, 0]) and its own ([c, 1]); a Gaussian
+        of sigma (mm, per axis) against marker noise sigma_n weighs sigma_n^2 / sigma^2.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -406,7 +411,10 @@ def refine_skeleton(
     held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
             if parent[int(c)] >= 0]
     k_hold = float(hold_weight) * F
-    A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    if prior_weights is None:
+        A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+    else:
+        A, k_prior = _joint_prior_operator(pr, parent, weights=np.asarray(prior_weights, dtype=float)), 1.0
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
@@ -559,6 +567,7 @@ def refine_skeleton(
         # a lost worker process (killed, out of memory): the whole fit again in this process alone,
         # which gives the same result
         p, R, d, l, cost, it = iterate(1)
+    objective = float(cost)
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
@@ -583,7 +592,7 @@ def refine_skeleton(
             new_origin[s] = new_origin[parent[s]] + d[s]
     return CalibrationResult(
         origin=new_origin, marker_local=l, rot=R, root_pos=p,
-        rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it,
+        rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it, objective=objective,
     )
 
 
@@ -597,21 +606,25 @@ def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     return g
 
 
-def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None) -> np.ndarray:
+def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None,
+                          weights: np.ndarray | None = None) -> np.ndarray:
     """(3K, ng) linear map from the constant unknowns to every joint's position relative to the
     marker centroid of each of its two segments (in that segment's frame).
 
     In the parent ``p``'s frame the joint of child ``c`` sits at ``d_c`` from ``p``'s origin,
     so ``d_c - mean(l_m, m in p)``; in ``c``'s frame it is ``c``'s origin, ``-mean(l_m, m in c)``.
+    weights : (S, 2) each block of three rows scaled by the square root of child ``c``'s weight in its
+    parent's frame ([c, 0]) or its own ([c, 1]), blocks of weight 0 left out.
     """
     rows = []
     for c in pr.kids:
         if only is not None and c not in only:
             continue
         p = int(parent[c])
-        for s, with_d in ((p, True), (c, False)):
+        for j, (s, with_d) in enumerate(((p, True), (c, False))):
             ms = [int(m) for m in pr.used if pr.seg[m] == s]
-            if not ms:
+            w = 1.0 if weights is None else float(weights[c, j])
+            if not ms or not w > 0:
                 continue
             for k in range(3):
                 row = np.zeros(pr.ng)
@@ -619,7 +632,7 @@ def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = N
                     row[pr.gi[c] + k] = 1.0
                 for m in ms:
                     row[pr.gl[m] + k] -= 1.0 / len(ms)
-                rows.append(row)
+                rows.append(np.sqrt(w) * row)
     return np.array(rows).reshape(-1, pr.ng)
 
 

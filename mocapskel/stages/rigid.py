@@ -20,6 +20,7 @@ from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
 from ..solvers.deepen import deepen_joints
 from ..solvers.leaf_hinges import centre_leaf_hinges
+from ..solvers.joint_map import map_refine, noise_sigma
 from ..solvers.mirror import centre_mirrored_pairs
 from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
 from ..solvers.refinement import _refine_once, refine
@@ -97,6 +98,22 @@ class Params:
     hold_weight: float = 0.01
     """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
     wherever they fix the position."""
+    joint_model: str = "rules"
+    """``"rules"``: the refinement, the held fit and the moves above. ``"map"``: the refinement is the
+    model's MAP with an explicit Gaussian prior on every joint (see
+    :mod:`~mocapskel.solvers.joint_map`), and nothing is moved after it; of the starts (the joints
+    stage's centres and its second estimate), the one of lowest negative log posterior is kept.
+    ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
+    ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
+    prior_scale: float = 0.1
+    """With ``joint_model="map"``: the prior's standard deviation on a joint, relative to each of its
+    two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
+    distance of its markers from the joint): 15 mm for a thigh's 150. Chosen among 0.03, 0.1 and 0.3
+    on generated seeds 1-3 (BENCHMARKS, "Rules against the model")."""
+    prior_mean: str = "deepened"
+    """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
+    put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
+    that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move)."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -176,6 +193,8 @@ def without_unfittable(joints: Joints, err: Unfittable) -> Joints:
 def run(joints: Joints, params: Params = Params()) -> Skeleton:
     """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s. A segment that cannot be
     fitted is left out (see :func:`without_unfittable`), and the rest fitted."""
+    if params.joint_model not in ("rules", "map"):
+        raise ValueError(f"joint_model must be 'rules' or 'map', not {params.joint_model!r}")
     while True:
         parent, parent_edge, order = _tree(joints)
         rest = _rest(joints, params)
@@ -184,6 +203,10 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             break
         except Unfittable as err:
             joints = without_unfittable(joints, err)
+    if params.joint_model == "map":
+        if params.refine_frames > 0:
+            skel = _map_fit(joints, skel, rest, parent, parent_edge, order, params)
+        return _with_lengths(skel)
     if params.refine_frames > 0:
         if joints.alt_centres is None:
             skel = refine(skel, params, joints.centres)
@@ -244,6 +267,39 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     if params.leaf_centre and skel.pose_rot is not None:
         skel = centre_leaf_hinges(skel, params.hinge_ratio)
     return _with_lengths(skel)
+
+
+def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, parent_edge: np.ndarray,
+             order: np.ndarray, params: Params) -> Skeleton:
+    """The MAP refinement (:func:`~mocapskel.solvers.joint_map.map_refine`) from every start the joints
+    stage offers, in forked processes; the start of lowest negative log posterior is kept."""
+    starts = [(joints.centres, skel)]
+    if joints.alt_centres is not None:
+        try:
+            starts.append((joints.alt_centres, _fit(joints, joints.alt_centres, rest, parent, parent_edge, order, params)))
+        except DataError:
+            pass
+
+    pts = joints.topology.segments.markers.points
+    F = pts.shape[0]
+    noise = noise_sigma(pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)],
+                        np.asarray(skel.marker_segment))
+
+    def one(i: int):
+        c, st = starts[i]
+        out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
+                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio)
+        return replace(out, joints=None)  # sent back from a forked process: without the take
+
+    outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
+    if any("refined" not in o.info for o in outs):
+        return outs[0]
+    nlp = [o.info["refined"]["neg_log_posterior"] for o in outs]
+    win = int(np.argmin(nlp))
+    info = dict(outs[win].info)
+    info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
+                           neg_log_posterior_starts=dict(zip(("joints", "framework"), nlp)))
+    return replace(outs[win], info=info)
 
 
 def _parts(joints: Joints):

@@ -1,0 +1,277 @@
+"""Rules against the model: the rigid stage's joints by its rules (``joint_model="rules"``) and by the
+model's MAP with explicit priors (``joint_model="map"``), side by side.
+
+    python -m bench.joint_model                       # markdown to stdout (slow: every case, both halves)
+    python -m bench.joint_model --tune                # the prior's scale on the tuning seeds only
+    python -m bench.joint_model --json --case realistic rom 1 --scales 0.5   # one case (internal)
+    python -m bench.joint_model --compact RAW.json 0.1   # rules against one scale, from a --raw file
+
+Generated cases are scored against their ground truth: joint rms over frames and joints (mean) and the
+worst joint's rms, after IK. Each is fitted twice from the same joints stage: with the true grouping and
+tree handed in, and with both found by the pipeline. Seeds 1-3 tune the prior's scale, seeds 4-6 check
+it. Real takes with a reference skeleton (``../shared/realref/``) are fitted and scored by the reference
+folder's ``score.py``; a few real takes (``../shared/realdata/``) are counted for the output checks'
+warnings. Every case runs in a fresh process.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import REPO, run_isolated, table
+
+FRAMES = 600
+MOTIONS = ("rom", "walk", "run", "kick", "reach")
+TUNE, CHECK = (1, 2, 3), (4, 5, 6)
+ROM48_FRAMES = 3600
+REALREF = REPO.parent / "shared" / "realref"
+REALDATA = REPO.parent / "shared" / "realdata"
+#: real takes whose output checks are counted (a walk, a run-like take, a gait-lab trial, a full-body sample)
+REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "ezc3d/Qualisys.c3d")
+
+
+def _rigid(mode: str, scale: float):
+    from mocapskel.stages import rigid
+
+    return rigid.Params(joint_model=mode, prior_scale=scale)
+
+
+def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
+    return [("rules", "rules", 0.5)] + [(f"map {s:g}", "map", s) for s in scales]
+
+
+def _true_topology(take, markers):
+    from mocapskel.artifacts import Segments, Topology
+
+    t = take.truth
+    S = len(t.segment_names)
+    seg = Segments(markers=markers, group=np.asarray(t.marker_segment), dist_std=np.zeros((0, 0)), eigvals=np.zeros(0))
+    edges = np.stack([t.parent[t.joint_child], t.joint_child], axis=1)
+    return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)
+
+
+def generated_case(kind: str, motion: str, seed: int, scales: list[float]) -> dict:
+    """{tree ("true" / "auto"): {mode: {"mean": mm, "worst": mm, "matched": joints}}} for one generated take."""
+    from mocapskel import evaluate, pipeline
+    from mocapskel.errors import MocapskelError
+    from mocapskel.synth.presets import active_rom, make, realistic
+
+    if kind == "realistic":
+        take = make(realistic(seed=seed, frames=FRAMES, motion=motion, markerset="cmu41"))
+    else:
+        take = make(active_rom(seed, frames=ROM48_FRAMES))
+    clean = pipeline.run_until(take.markers, "clean").artifact
+    out: dict = {}
+    for tree in ("true", "auto"):
+        try:
+            src = _true_topology(take, clean) if tree == "true" else pipeline.run_until(clean, "topology").artifact
+            joints = pipeline.run_until(src, "joints").artifact
+        except MocapskelError as e:
+            out[tree] = {"error": str(e).splitlines()[0][:80]}
+            continue
+        out[tree] = {}
+        for name, mode, s in _modes(scales):
+            try:
+                mot = pipeline.run_until(joints, "ik", {"rigid": _rigid(mode, s)}).artifact
+            except MocapskelError as e:
+                out[tree][name] = {"error": str(e).splitlines()[0][:80]}
+                continue
+            sc = evaluate.score_motion(mot, take.truth)
+            each = [v for v in sc.joint_rms_each.values() if np.isfinite(v)]
+            out[tree][name] = {"mean": sc.joint_rms_mm, "worst": float(max(each)) if each else float("nan"),
+                               "matched": len(each), "start": mot.skeleton.info.get("refined", {}).get("start")}
+    return out
+
+
+def real_case(name: str, scales: list[float]) -> dict:
+    """{mode: score.py's fields} for one reference take (fitted in this process, scored by score.py)."""
+    from mocapskel import pipeline
+    from mocapskel.errors import MocapskelError
+    from mocapskel.io.bvh import write_bvh
+
+    out = {}
+    for label, mode, s in _modes(scales):
+        params = pipeline.make_params(up="z", units="mm")
+        params["rigid"] = _rigid(mode, s)
+        with tempfile.TemporaryDirectory() as d:
+            try:
+                res = pipeline.fit(REALREF / f"{name}.c3d", params)
+            except MocapskelError as e:
+                out[label] = {"error": str(e).splitlines()[0][:80]}
+                continue
+            bvh = Path(d) / f"{name}.bvh"
+            b = res.bvh
+            write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+            r = subprocess.run([sys.executable, str(REALREF / "score.py"), name, str(bvh)], capture_output=True, text=True)
+            out[label] = json.loads(r.stdout.strip().splitlines()[-1])
+    return out
+
+
+def checks_case(rel: str, scales: list[float]) -> dict:
+    """{mode: the number of output-check warnings} for one real take."""
+    from mocapskel import pipeline
+    from mocapskel.errors import MocapskelError
+
+    out = {}
+    for label, mode, s in _modes(scales):
+        params = pipeline.make_params(up="z", units="mm")
+        params["rigid"] = _rigid(mode, s)
+        try:
+            res = pipeline.fit(REALDATA / rel, params)
+        except MocapskelError as e:
+            out[label] = {"error": str(e).splitlines()[0][:80]}
+            continue
+        out[label] = {"warnings": sum(1 for w in res.report["warnings"] if w.startswith("check "))}
+    return out
+
+
+def _cell(r: dict, key: str) -> str:
+    return "error" if "error" in r else f"{r[key]:.1f}"
+
+
+def generated_table(seeds, scales: list[float], cases=None) -> tuple[str, dict]:
+    cases = cases or [("realistic", m) for m in MOTIONS] + [("rom48", "rom")]
+    modes = [n for n, _, _ in _modes(scales)]
+    rows, raw = [], {}
+    for kind, motion in cases:
+        for seed in seeds:
+            r = run_isolated("joint_model", "--case", kind, motion, str(seed), "--scales", *map(str, scales))
+            raw[f"{kind} {motion} {seed}"] = r
+            for tree in ("true", "auto"):
+                t = r[tree]
+                if "error" in t:
+                    rows.append([f"{kind} {motion}", seed, tree] + ["error"] * (2 * len(modes)))
+                    continue
+                rows.append([f"{kind} {motion}", seed, tree] + [_cell(t[m], k) for m in modes for k in ("mean", "worst")])
+            print(f"  {rows[-2]}\n  {rows[-1]}", file=sys.stderr)
+    head = ["case", "seed", "grouping and tree"] + [f"{m} {k} (mm)" for m in modes for k in ("mean", "worst")]
+    return table(head, rows), raw
+
+
+def summary(raw: dict, scales: list[float]) -> str:
+    """Per case and half: the mean over seeds of the joint rms (mean and worst joint) for every mode."""
+    modes = [n for n, _, _ in _modes(scales)]
+    rows = []
+    keys = sorted({k.rsplit(" ", 1)[0] for k in raw}, key=lambda k: list(raw).index(next(x for x in raw if x.startswith(k))))
+    for case in keys:
+        for half, seeds in (("tuning 1-3", TUNE), ("checking 4-6", CHECK)):
+            for tree in ("true", "auto"):
+                got = [raw[f"{case} {s}"][tree] for s in seeds if f"{case} {s}" in raw]
+                if not got:
+                    continue
+                row = [case, half, tree]
+                for m in modes:
+                    for k in ("mean", "worst"):
+                        v = [g[m][k] for g in got if "error" not in g and "error" not in g.get(m, {"error": 1})]
+                        row.append(f"{np.mean(v):.1f}" + ("" if len(v) == len(got) else f" ({len(got) - len(v)} failed)")
+                                   if v else "error")
+                rows.append(row)
+    return table(["case", "seeds", "grouping and tree"] + [f"{m} {k} (mm)" for m in modes for k in ("mean", "worst")], rows)
+
+
+def compact(raw: dict, scale: float) -> str:
+    """Rules against the model at one prior scale: per case and grouping, the tuning and checking halves'
+    mean over seeds of the joint rms (mean over joints, and the worst joint's)."""
+    m = f"map {scale:g}"
+    rows = []
+    for case in dict.fromkeys(k.rsplit(" ", 1)[0] for k in raw):
+        for tree in ("true", "auto"):
+            row = [case, "given" if tree == "true" else "found"]
+            for seeds in (TUNE, CHECK):
+                got = [raw[f"{case} {s}"][tree] for s in seeds if f"{case} {s}" in raw]
+                for mode in ("rules", m):
+                    ok = [g[mode] for g in got if "error" not in g and "error" not in g[mode]]
+                    fail = "" if len(ok) == len(got) else f" ({len(got) - len(ok)} failed)"
+                    row += [f"{np.mean([o['mean'] for o in ok]):.1f}{fail}" if ok else "error",
+                            f"{np.mean([o['worst'] for o in ok]):.0f}" if ok else ""]
+            rows.append(row)
+    head = ["case", "grouping and tree"] + [f"{h}: {mode} {k}" for h in ("tuning 1-3", "checking 4-6")
+                                           for mode in ("rules", "map") for k in ("mean (mm)", "worst joint (mm)")]
+    return table(head, rows)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--case", nargs=3, metavar=("KIND", "MOTION", "SEED"))
+    ap.add_argument("--real", metavar="NAME")
+    ap.add_argument("--checks", metavar="REL")
+    ap.add_argument("--scales", nargs="+", type=float, default=[0.5])
+    ap.add_argument("--tune", action="store_true", help="the tuning seeds only, several scales")
+    ap.add_argument("--real-only", action="store_true", help="the real takes only")
+    ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
+    ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
+    a = ap.parse_args()
+    if a.compact:
+        print(compact(json.loads(Path(a.compact[0]).read_text()), float(a.compact[1])))
+        return
+    if a.case:
+        print(json.dumps(generated_case(a.case[0], a.case[1], int(a.case[2]), a.scales)))
+        return
+    if a.real:
+        print(json.dumps(real_case(a.real, a.scales)))
+        return
+    if a.checks:
+        print(json.dumps(checks_case(a.checks, a.scales)))
+        return
+    if not a.real_only:
+        generated(a)
+    if not a.tune:
+        real(a)
+
+
+def generated(a) -> None:
+    seeds = TUNE if a.tune else TUNE + CHECK
+    text, raw = generated_table(seeds, a.scales)
+    if a.raw:
+        Path(a.raw).write_text(json.dumps(raw, indent=1))
+    print("Generated takes (cmu41 realistic: 600 frames, 120 Hz, 1 mm noise, skin motion; rom48: the active human "
+          f"ROM take, 48 markers, {ROM48_FRAMES} frames): joint rms after IK against the truth, mean over joints "
+          "and frames, and the worst joint's. Seeds 1-3 tune the prior's scale, 4-6 check it.\n")
+    print(summary(raw, a.scales))
+    print("\nEvery seed:\n")
+    print(text)
+
+
+def real(a) -> None:
+    if (REALREF / "score.py").is_file():
+        rows = []
+        for name in sorted(p.name[: -len(".ref.npz")] for p in REALREF.glob("*.ref.npz")):
+            r = run_isolated("joint_model", "--real", name, "--scales", *map(str, a.scales))
+            row = [name]
+            for m in r.values():
+                if "error" in m:
+                    row += ["error", ""]
+                elif m.get("kind") == "lengths":
+                    row += [f"{m['links_matched']} of {m['links_ref']} links", f"{m.get('bone_err_pct_mean', float('nan')):.2f} %"]
+                else:
+                    row += [f"{m['joints_matched']} of {m['joints_ref']}: {m['joint_rms_mean_mm']:.1f} mm",
+                            f"{m['bone_err_mm_mean']:.1f} mm"]
+            rows.append(row)
+            print(f"  {row}", file=sys.stderr)
+        modes = [n for n, _, _ in _modes(a.scales)]
+        print("\nReal takes with a reference skeleton (`../shared/realref/score.py`):\n")
+        print(table(["take"] + [f"{m} {k}" for m in modes for k in ("joints", "bone error")], rows))
+    else:
+        print("\n(the reference folder `../shared/realref/` is absent: real references not measured)")
+    rows = []
+    for rel in REAL_TAKES:
+        if not (REALDATA / rel).is_file():
+            continue
+        r = run_isolated("joint_model", "--checks", rel, "--scales", *map(str, a.scales))
+        rows.append([rel] + [m.get("warnings", "error") for m in r.values()])
+        print(f"  {rows[-1]}", file=sys.stderr)
+    if rows:
+        modes = [n for n, _, _ in _modes(a.scales)]
+        print("\nReal takes (`../shared/realdata/`): output-check warnings (bone lengths, joints off their markers, jumps):\n")
+        print(table(["take"] + modes, rows))
+
+
+if __name__ == "__main__":
+    main()

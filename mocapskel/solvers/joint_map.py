@@ -1,0 +1,121 @@
+"""Joints by the model's MAP: the whole skeleton refined with explicit Gaussian priors as factors.
+
+The model of a take (DESIGN, "One model, not rules"): markers are points fixed on rigid segments,
+the segments meet at fixed joint centres, and what is left is noise of standard deviation
+``sigma_n`` per axis, measured from the take (:func:`noise_sigma`). Where the
+markers do not fix a joint (a hinge's centre along its axis, a shoulder along its swing axis), a
+prior says where it is:
+
+    joint c, relative to the marker centroid of each of its two segments s (in s's frame),
+    ~ N(mean_c, sigma_cs^2 I),  sigma_cs = ``scale`` x size_cs,
+
+size_cs being the rms distance of segment s's markers from the joint at rest (how far the segment
+reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
+hinge with a marker over its axis one limb half-width inside that marker along the axis
+(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.deepen.deepen_joints`, a surface
+marker sitting outside the bone, as the prior's mean). The MAP minimises
+
+    sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
+
+over the refinement's frames (:func:`~mocapskel.solvers.calibrate.refine_skeleton` with
+``prior_weights`` = sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole fit, while
+the markers add a term in every frame: where the motion fixes a joint, the data win; along a
+direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
+the markers alone, so that every start is scored by the same model.
+
+Several starts (the joints stage's centres and its second estimate) are each refined with a prior
+centred on its own start (a mixture prior of equal weights); the start of lowest negative log
+posterior is kept.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..artifacts import Skeleton
+from .calibrate import pick_frames, refine_skeleton
+from .deepen import deepen_joints
+from .motion import _centres_by_edges, solve
+from .refinement import refine_frame_count
+from .rest_pose import _rest_markers
+from .rigid_shape import procrustes_shape
+
+#: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
+#: this, so that a noise-free take does not turn the priors' weights to zero.
+NOISE_FLOOR_MM = 0.1
+
+
+def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
+    """The take's marker noise per axis (mm), from the markers alone (not the joints, which differ
+    between starts): every segment of three or more markers fitted as one rigid shape over the frames
+    ``points`` (F, M, 3), the residual sum of squares over its degrees of freedom (3 per seen marker,
+    less 6 for each frame's pose); at least :data:`NOISE_FLOOR_MM`."""
+    sse, dof = 0.0, 0.0
+    for s in np.unique(group[group >= 0]):
+        obs = points[:, group == s]
+        if obs.shape[1] < 3:
+            continue
+        _, _, _, rms = procrustes_shape(obs)
+        n = np.isfinite(obs).all(-1).sum(1)
+        ok = np.isfinite(rms) & (n >= 3)
+        sse += float(np.sum(rms[ok] ** 2 * n[ok]))
+        dof += float(np.sum(3 * n[ok] - 6))
+    return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
+
+
+def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
+    """(S, 2) the prior's standard deviation (mm) on child c's joint in its parent's frame ([c, 0]) and in
+    its own ([c, 1]): ``scale`` x the rms distance of that segment's markers from the joint at rest in
+    ``mean``; NaN where the segment has no marker or c is the root."""
+    pos = _rest_markers(mean)
+    seg = mean.marker_segment
+    S = len(mean.names)
+    out = np.full((S, 2), np.nan)
+    for c in range(S):
+        p = int(mean.parent[c])
+        if p < 0:
+            continue
+        for j, s in enumerate((p, c)):
+            m = (seg == s) & np.isfinite(pos).all(1)
+            if m.any():
+                size = float(np.sqrt(np.mean(np.sum((pos[m] - mean.origin[c]) ** 2, axis=1))))
+                if size > 0:
+                    out[c, j] = scale * size
+    return out
+
+
+def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
+               mean: str = "deepened", hinge_ratio: float = 0.6) -> Skeleton:
+    """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
+    joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
+    ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
+    every start of a take) and the prior's sigmas."""
+    pts = start.joints.topology.segments.markers.points
+    vis = np.isfinite(pts).all(-1)
+    use = pick_frames(vis, refine_frame_count(frames, len(start.names), pts.shape[0],
+                                              int((start.marker_segment >= 0).sum())), must=start.rest_frame)
+    if use.size < 10:
+        return start
+    ref = int(np.searchsorted(use, start.rest_frame))
+    c = _centres_by_edges(start, centres)
+    pose = solve(start, pts[use], c[use])
+    centre = start
+    if mean == "deepened":
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
+    sn = noise
+    sig = prior_sigmas(centre, scale)
+    w = np.where(np.isfinite(sig), sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
+    res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                          pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
+                          anchor=(centre.origin, centre.marker_local))
+    # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
+    nlp = res.objective / (2.0 * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
+    info = dict(start.info)
+    info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
+                       "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn,
+                       "prior_scale": scale, "neg_log_posterior": nlp,
+                       "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
+                                          if start.parent[k] >= 0}}
+    return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
+                   pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
