@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .parallel import run_blocks
 from .rotations import ORDERS, _parse_order, matrix_to_euler
 
 __all__ = ["rotation_steps", "channel_steps", "euler_spikes", "order_spike_counts"]
@@ -91,20 +92,23 @@ def order_spike_counts(R: np.ndarray, margin_deg: float = SPIKE_MARGIN_DEG) -> n
         return out
     th = np.radians(rotation_steps(R))
     cos_t, sin_t = np.cos(th), np.sin(th)
-    for n, order in enumerate(ORDERS):
-        i, _, k, _ = _parse_order(order)
+
+    def count(n: int) -> None:  # the orders are independent: side by side on the cores
+        i, _, k, _ = _parse_order(ORDERS[n])
         sb = np.abs(R[..., i, k])
         top = np.minimum(np.maximum(sb[1:], sb[:-1]), 1.0)  # sin of the larger |b| of the two frames
         # cos(|b| + theta), floored at 0 where |b| + theta passes 90 degrees
         cb = np.maximum(np.sqrt(1.0 - top * top) * cos_t - top * sin_t, 0.0)
         cand = th * (1.0 - cb) > np.radians(margin_deg) * cb
         if not cand.any():
-            continue
+            return
         f, *rest = np.nonzero(cand)
-        x0 = matrix_to_euler(R[(f, *rest)], order)
-        x1 = matrix_to_euler(R[(f + 1, *rest)], order)
+        x0 = matrix_to_euler(R[(f, *rest)], ORDERS[n])
+        x1 = matrix_to_euler(R[(f + 1, *rest)], ORDERS[n])
         y1 = x1 + np.array([180.0, 0.0, 180.0])
         y1[:, 1] = 180.0 - x1[:, 1]
         step = np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
         out[n] = int(np.count_nonzero(step > np.degrees(th[cand]) + margin_deg))
+
+    run_blocks(count, range(len(ORDERS)))
     return out
