@@ -23,6 +23,7 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
+from ..model.measures import visible
 from ..solvers.merge_jumps import judged_by_partners, norm3, rigid_jumps
 from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of
 from ..solvers.parallel import run_blocks
@@ -268,7 +269,7 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         return candidates.copy()
     rate = float(rate) if rate and rate > 0 else 1.0
     pts = points
-    if not np.isfinite(points[vis]).all() or (~vis & np.isfinite(points).all(-1)).any():
+    if not np.array_equal(vis, visible(points)):  # some sample's visibility is not its points' finiteness
         pts = np.where(vis[..., None], points, np.nan)
     sums = pair_sums(pts, vis, max_entries=_PAIR_ENTRIES)
     min_shared = max(3, int(np.ceil(0.15 * rate / sums.stride)))
