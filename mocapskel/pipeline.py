@@ -141,7 +141,9 @@ def run_until(
     for stage in STAGES[_index(have) + 1 : _index(target) + 1]:
         mod = stage_module(stage)
         p = params.get(stage) or mod.Params()
-        k = stage_key(stage, mod.VERSION, p, run.key, code_digest(mod.__name__))
+        # the code's digest names the code in a stored entry's key; without a cache folder nothing is stored
+        # (in a fresh process the digests read and hash the package's sources: a tenth of a second)
+        k = stage_key(stage, mod.VERSION, p, run.key, code_digest(mod.__name__) if cache.folder is not None else "")
         t = time.perf_counter()
         # the upstream artifact is the one in hand: an entry's reference is checked against its key, never followed
         hit = cache.get(k, stage, upstream=(run.key, run.artifact)) if key != "memory" else None
