@@ -6,13 +6,16 @@ The take is generated first (bench.fit_case's generator, same arguments), then
 ``mocapskel fit take.c3d -o take.bvh --no-cache -q`` runs ``--repeats`` times,
 each a fresh process (interpreter start, imports, read, every stage, BVH
 written). Prints the median and minimum wall time and the peak RSS of the runs.
+
+The command is ``python -m mocapskel`` with this checkout first on the path and
+the take's folder as the working directory: the installed ``mocapskel`` script
+imports whatever checkout was installed, which need not be the one measured.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -28,14 +31,15 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--repeats", type=int, default=5)
     a, rest = ap.parse_known_args()
-    exe = shutil.which("mocapskel", path=str(Path(sys.executable).parent)) or "mocapskel"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH", "")])))
     with tempfile.TemporaryDirectory() as d:
         subprocess.run([sys.executable, "-m", "bench.fit_case", *rest, "--write", d], check=True, cwd=REPO)
         take = Path(d) / "take.c3d"
         walls, peaks = [], []
         for _ in range(a.repeats):
             t = time.perf_counter()
-            p = subprocess.Popen([exe, "fit", str(take), "-o", str(Path(d) / "out.bvh"), "--no-cache", "-q"])
+            p = subprocess.Popen([sys.executable, "-m", "mocapskel", "fit", str(take), "-o", str(Path(d) / "out.bvh"),
+                                  "--no-cache", "-q"], cwd=d, env=env)
             _, status, ru = os.wait4(p.pid, 0)
             walls.append(time.perf_counter() - t)
             peaks.append(ru.ru_maxrss / 1024.0)

@@ -1,11 +1,13 @@
 """Speed and memory of ``fit``: the read floor, long takes, and scaling in frames and markers.
 
-    python -m bench.speed            # markdown to stdout
+    python -m bench.speed               # markdown to stdout
+    python -m bench.speed --long-only   # only the 60,000-frame active take's row of "Long takes"
 
 Every measurement runs in a fresh process (bench.fit_case / bench.read_case).
 """
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 
@@ -33,6 +35,10 @@ def fit(frames: int, seed: int = 1, mps: int | None = None, repeats: int = 1, pa
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--long-only", action="store_true",
+                    help="only the 60,000-frame active take of the long takes' table (no scaling tables)")
+    a = ap.parse_args()
     print("### Long takes (human ROM: 48 markers, 120 Hz, 1 mm noise, 2 mm soft tissue; active: 4 gaps per marker "
           "per minute; passive: a new label after every gap, 1 gap per marker per minute, 25 ghosts, 10 jumps)\n")
     print("'fit': `pipeline.fit` from the C3D file plus the BVH write, in a fresh process (median of 3; "
@@ -41,11 +47,16 @@ def main() -> None:
           "'ezc3d read': `ezc3d.c3d(path, extract_forceplat_data=False)` of the same file, the first read in a fresh "
           "process as a fit's is (median of 3 processes; a process's later reads are faster).\n")
     rows = []
-    for frames, passive in ((7200, False), (60000, False), (7200, True), (60000, True)):
-        r = fit(frames, repeats=3, passive=passive)
-        # the floor: ezc3d's first read of the same file in a fresh process, median of 3
-        rd = {"read_s": statistics.median(run_isolated("read_case", *fit_args(frames, passive=passive))["read_s"]
-                                          for _ in range(3))}
+    cases = ((60000, False),) if a.long_only else ((7200, False), (60000, False), (7200, True), (60000, True))
+    for frames, passive in cases:
+        # the fit and the floor (ezc3d's first read of the same file in a fresh process) alternately, so that
+        # both see the same load of a shared machine; median of 3 each
+        fits, reads = [], []
+        for _ in range(3):
+            fits.append(fit(frames, passive=passive))
+            reads.append(run_isolated("read_case", *fit_args(frames, passive=passive))["read_s"])
+        r = dict(fits[-1], total_s=statistics.median(f["total_s"] for f in fits))
+        rd = {"read_s": statistics.median(reads)}
         cli = run_isolated("cli_case", *fit_args(frames, passive=passive), "--repeats", "5")
         st = r["seconds"]
         rows.append([f"{frames} ({frames / 7200:.3g} min)" + (", passive" if passive else ""),
@@ -56,6 +67,8 @@ def main() -> None:
         print(f"  {frames}: {rows[-1]}", file=sys.stderr)
     print(table(["frames", "fit (s)", "CLI (s)", "ezc3d read (s)", "fit / read", "CLI / read", "CLI peak RSS (MB)",
                  "seconds per stage", "joint rms (mm)", "topology right"], rows))
+    if a.long_only:
+        return
     print("\n### Scaling in frames (48 markers)\n")
     rows = []
     for frames in (1000, 3000, 10000, 30000, 60000):

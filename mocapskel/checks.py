@@ -66,6 +66,7 @@ from .artifacts import Motion
 from .model.kinematics import segment_origins
 from .model.measures import frames_text, marker_extent
 from .model.tree import like_limb_pairs, unlike_bones
+from .solvers.bvh_pose import _transpose_blocks
 
 __all__ = ["Finding", "Limits", "run_checks"]
 
@@ -251,7 +252,8 @@ def _joint_turns(R: np.ndarray, parent: np.ndarray) -> np.ndarray:
     batched ``@`` of 3x3 matrices over a long take is several times slower)."""
     F, S = R.shape[:2]
     rel = np.empty((max(F - 1, 0), S))
-    Rt = np.ascontiguousarray(np.moveaxis(R, 0, -1))  # (S, 3, 3, F)
+    # (S, 3, 3, F), copied a few hundred frames at a time (one transposing copy of a long take is twice as slow)
+    Rt = _transpose_blocks(np.ascontiguousarray(R, dtype=np.float64).reshape(F, -1)).reshape(S, 3, 3, F)
     L = np.empty((3, 3, F))
     tmp = np.empty(F)
     for s in range(S):

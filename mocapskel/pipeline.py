@@ -141,7 +141,9 @@ def run_until(
     for stage in STAGES[_index(have) + 1 : _index(target) + 1]:
         mod = stage_module(stage)
         p = params.get(stage) or mod.Params()
-        k = stage_key(stage, mod.VERSION, p, run.key, code_digest(mod.__name__))
+        # the code's digest names the code in a stored entry's key; without a cache folder nothing is stored
+        # (in a fresh process the digests read and hash the package's sources: a tenth of a second)
+        k = stage_key(stage, mod.VERSION, p, run.key, code_digest(mod.__name__) if cache.folder is not None else "")
         t = time.perf_counter()
         # the upstream artifact is the one in hand: an entry's reference is checked against its key, never followed
         hit = cache.get(k, stage, upstream=(run.key, run.artifact)) if key != "memory" else None
@@ -245,7 +247,6 @@ def fit(
     :func:`mocapskel.io.bvh.write_bvh`) and ``result.report`` as it likes.
     """
     from .report import build_report
-    from .stages import export
     from .subjects import split_subjects
 
     params = dict(params or {})
@@ -266,28 +267,50 @@ def fit(
         run = run_until(source, "ik", params, cache=cache, read=read, key=key, progress=progress)
     if groups is not None:
         return _fit_subjects(first, groups, params, cache, progress, t)
-    t_exp = time.perf_counter()
-    bvh = export.run(run.artifact, params.get("export") or export.Params())
-    run.seconds["export"] = time.perf_counter() - t_exp
+    bvh, checked = _export_and_check(run, params)
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
-    _finish_report(report, run, bvh)
+    _finish_report(report, bvh, checked)
     return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
 
 
-def _finish_report(report: dict, run: Run, bvh: Any) -> None:
-    """The export's naming and notes, and the checks of the solved motion, into ``report``."""
+def _export_and_check(run: Run, params: dict[str, Any]) -> tuple[Any, tuple[list, float]]:
+    """The BVH motion of ``run``'s solved motion, and the checks of that motion with their time (s).
+
+    The two read the motion only and neither needs the other, so they run side by side (on two
+    threads unless ``MOCAPSKEL_THREADS=1``); the export's time goes into ``run.seconds``."""
+    from . import checks
+    from .solvers.parallel import run_blocks
+    from .stages import export
+
+    motion = run.artifact
+
+    def do_export() -> Any:
+        t = time.perf_counter()
+        out = export.run(motion, params.get("export") or export.Params())
+        run.seconds["export"] = time.perf_counter() - t
+        return out
+
+    def do_checks() -> tuple[list, float]:
+        t = time.perf_counter()
+        found = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))
+        return found, time.perf_counter() - t
+
+    bvh, checked = run_blocks(lambda job: job(), [do_export, do_checks])
+    return bvh, checked
+
+
+def _finish_report(report: dict, bvh: Any, checked: tuple[list, float]) -> None:
+    """The export's naming and notes, and the checks of the solved motion (findings, seconds), into ``report``."""
     from . import checks
 
     report["export"] = bvh.report()
     if bvh.rest_frame is not None:
         report["rest_frame"] = bvh.rest_frame  # the BVH's rest pose (the skeleton's may be another frame's)
     report["warnings"].extend(bvh.notes)
-    t_chk = time.perf_counter()
-    motion = run.artifact
-    findings = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))
+    findings, secs = checked
     checks.add_to_report(report, findings)
-    report["seconds"]["checks"] = round(time.perf_counter() - t_chk, 4)
+    report["seconds"]["checks"] = round(secs, 4)
 
 
 def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache,
@@ -295,7 +318,6 @@ def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache
     """Fit every subject's markers on their own, from the segment stage on."""
     from .errors import MocapskelError
     from .report import build_report
-    from .stages import export
     from .subjects import subset
 
     K = len(groups)
@@ -312,14 +334,12 @@ def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache
             e.args = (f"subject {i} of {K} ({len(idx)} markers, {mk.labels[0]} …): {e.args[0]}",) + e.args[1:]
             raise
         run = _chain(first, rest)
-        t_exp = time.perf_counter()
-        bvh = export.run(run.artifact, params.get("export") or export.Params())
-        run.seconds["export"] = time.perf_counter() - t_exp
+        bvh, checked = _export_and_check(run, params)
         run.seconds["subject_total"] = time.perf_counter() - t
         run.seconds["total"] = time.perf_counter() - t0
         run.warnings.append(f"the take holds {K} subjects; this fit is subject {i} ({len(idx)} markers)")
         report = build_report(run, params)
-        _finish_report(report, run, bvh)
+        _finish_report(report, bvh, checked)
         results.append(FitResult(motion=run.artifact, bvh=bvh, report=report, run=run))
     listing = [
         {"index": i, "markers": [mk_all.labels[j] for j in g], "segments": len(r.bvh.skeleton.names),

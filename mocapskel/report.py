@@ -8,6 +8,7 @@ import numpy as np
 
 from . import __version__
 from .artifacts import Motion, markers_of
+from .model.measures import visible
 
 
 def _f(x: Any) -> Any:
@@ -27,7 +28,7 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
     segs = topo.segments if topo is not None else None
     mk = markers_of(motion)
     pts = mk.points
-    vis = np.isfinite(pts).all(-1)
+    vis = visible(pts)
     read_info = {k: v for k, v in mk.info.items() if k not in ("clean", "merge_ids")}
     warnings: list[str] = list(run.warnings)
     for v in mk.info.get("warnings", []) or []:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .artifacts import Markers
+from .model.measures import visible
 
 __all__ = ["GAP_RATIO", "MIN_MARKERS", "MOVE_MM", "split_subjects", "subset"]
 
@@ -84,7 +85,7 @@ def split_subjects(markers: Markers) -> list[np.ndarray] | None:
     F, M = pts.shape[:2]
     if M < 2 * MIN_MARKERS or F < 2:
         return None
-    seen = np.isfinite(pts).all(axis=-1)
+    seen = visible(pts)
     frames = np.flatnonzero(seen.any(axis=1))
     if frames.size > SAMPLE_FRAMES:
         frames = frames[np.unique(np.linspace(0, frames.size - 1, SAMPLE_FRAMES).round().astype(int))]

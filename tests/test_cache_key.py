@@ -115,3 +115,19 @@ def test_edited_shared_code_recomputes_the_stages_that_run_it(tmp_path: Path, mo
     cache_mod.code_digest.cache_clear()
     bump = pipeline.run_until(take, "ik", cache=Cache(folder))
     assert bump.cached == ["clean", "merge-ids", "segment", "topology", "joints"]
+
+
+def test_without_a_cache_folder_no_code_is_digested(tmp_path: Path, monkeypatch) -> None:
+    """Keys name the code only for entries that are stored: a run without a cache folder reads and hashes
+    no source (a tenth of a second in a fresh process), one with a folder does."""
+    take = tmp_path / "link.trc"
+    write_markers(take, make(Recipe(kind="linkage", frames=300, noise_mm=0.5, seed=1)).markers)
+
+    def no_digest(name: str) -> str:
+        raise AssertionError(f"digested {name}")
+
+    monkeypatch.setattr(pipeline, "code_digest", no_digest)
+    run = pipeline.run_until(take, "segment", cache=Cache(None))
+    assert run.artifact.n_segments >= 2
+    with pytest.raises(AssertionError, match="digested mocapskel.stages.clean"):
+        pipeline.run_until(take, "segment", cache=Cache(tmp_path / "cache"))

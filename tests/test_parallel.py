@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mocapskel.solvers import parallel
-from mocapskel.solvers.parallel import Shares, n_threads, run_blocks, run_forked
+from mocapskel.solvers.parallel import Shares, n_threads, run_ahead, run_blocks, run_forked
 
 PARENT = os.getpid()
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="run_forked forks on Linux only")
@@ -102,6 +102,59 @@ def test_a_fit_is_the_same_on_one_core_and_on_several(monkeypatch, tmp_path) -> 
     np.testing.assert_array_equal(one.skeleton.joints.topology.pair_cost, two.skeleton.joints.topology.pair_cost)
     np.testing.assert_array_equal(one.rot, two.rot)
     np.testing.assert_array_equal(one.root_pos, two.root_pos)
+
+
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_run_ahead_yields_in_order_with_few_results_held(monkeypatch, threads) -> None:
+    import threading
+
+    monkeypatch.setenv("MOCAPSKEL_THREADS", threads)
+    started: list[int] = []
+    lock = threading.Lock()
+
+    def fn(x: int) -> int:
+        with lock:
+            started.append(x)
+        return x * x
+
+    got = []
+    for i, y in enumerate(run_ahead(fn, range(25), ahead=3)):
+        got.append(y)
+        assert len(started) <= i + 1 + 3  # never more than `ahead` items beyond those taken
+    assert got == [x * x for x in range(25)]
+    assert sorted(started) == list(range(25))
+
+
+def test_long_take_paths_are_the_same_on_one_core_and_on_several(monkeypatch) -> None:
+    """Clean's rigid jump test, its jump search and the BVH writer work through a long take in blocks on
+    threads, and the fit checks its output beside the export: with blocks made small so that a short take
+    has many, the cleaned markers, the BVH text and the checks are the same, bit for bit, on one thread
+    and on two."""
+    from mocapskel import pipeline
+    from mocapskel.io import bvh as bvh_io
+    from mocapskel.stages import clean
+    from mocapskel.synth.presets import active_rom, make
+
+    take = make(active_rom(4, frames=1500, jumps=12))
+    monkeypatch.setattr(clean, "_RIGID_BLOCK", 256)
+    monkeypatch.setattr(clean, "_WINDOW_CHUNK", 3000)
+    monkeypatch.setattr(clean, "_BLOCK_SAMPLES", 4096)
+    monkeypatch.setattr(bvh_io, "_BLOCK_FRAMES", 64)
+    monkeypatch.setattr(bvh_io, "_CHECK_FRAMES", 128)
+    out = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("MOCAPSKEL_THREADS", threads)
+        cleaned = clean.run(take.markers)
+        res = pipeline.fit(take.markers, pipeline.make_params())
+        b = res.bvh
+        out[threads] = (cleaned, bvh_io.bvh_text(b.skeleton, b.root_pos, b.local_rot, b.frame_time),
+                        res.report["checks"], res.report["warnings"])
+    (c1, t1, k1, w1), (c2, t2, k2, w2) = out["1"], out["2"]
+    assert c1.info["clean"]["jump_samples"] > 0  # the rigid test had jumps to judge
+    np.testing.assert_array_equal(c1.points, c2.points)
+    assert c1.info == c2.info
+    assert t1 == t2
+    assert k1 == k2 and w1 == w2
 
 
 def _keeper():

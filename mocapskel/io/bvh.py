@@ -47,6 +47,7 @@ import numpy as np
 
 from ..model.tree import check_names, depth_first_order
 from ..solvers.bvh_pose import BvhSkeleton, _transpose_blocks
+from ..solvers.parallel import run_ahead, run_blocks
 from ..solvers.rotations import matrix_to_euler, unwrap_euler
 from .atomic import atomic_open
 
@@ -197,7 +198,15 @@ def _prepare(
     if err > 1e-6:
         raise ValueError(f"local_rot must hold rotation matrices (error {err:.3g} from orthonormal, det +1)")
     dfs = depth_first_order(skel.parent)
-    ang = unwrap_euler(_frames_innermost(matrix_to_euler(local_rot, skel.order)), skel.order)
+
+    def angles(joints: slice) -> np.ndarray:
+        # every joint's angles are its own (elementwise, unwrapped joint by joint): halves of the joints
+        # run side by side
+        return unwrap_euler(_frames_innermost(matrix_to_euler(local_rot[:, joints], skel.order)), skel.order)
+
+    half = (S + 1) // 2
+    parts = run_blocks(angles, [slice(0, half), slice(half, S)] if S > 1 else [slice(0, S)])
+    ang = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
     motion = np.empty((F, 3 + 3 * S))
     motion[:, :3] = root_pos
     motion[:, 3:].reshape(F, S, 3)[...] = ang if np.array_equal(dfs, np.arange(S)) else ang[:, dfs]
@@ -213,7 +222,7 @@ def _rotation_error(R: np.ndarray) -> float:
     """
     if R.size == 0:
         return 0.0
-    return max(_rotation_error_block(R[f : f + _CHECK_FRAMES]) for f in range(0, R.shape[0], _CHECK_FRAMES))
+    return max(run_blocks(_rotation_error_block, [R[f : f + _CHECK_FRAMES] for f in range(0, R.shape[0], _CHECK_FRAMES)]))
 
 
 def _rotation_error_block(R: np.ndarray) -> float:
@@ -337,10 +346,13 @@ def _format_p6(q: np.ndarray, negative: np.ndarray, n_columns: int) -> bytes:
 
 
 def _motion_blocks(motion: np.ndarray, precision: int) -> Iterator[bytes]:
-    """The MOTION lines as ASCII, a thousand frames per chunk."""
-    for start in range(0, motion.shape[0], _BLOCK_FRAMES):
+    """The MOTION lines as ASCII, a thousand frames per chunk (formatted on threads, a few chunks ahead)."""
+
+    def text(start: int) -> bytes:
         blk = np.round(motion[start : start + _BLOCK_FRAMES], precision) + 0.0  # no "-0.000000"
-        yield _format_fixed(blk, precision)
+        return _format_fixed(blk, precision)
+
+    return run_ahead(text, range(0, motion.shape[0], _BLOCK_FRAMES))
 
 
 def bvh_text(

@@ -58,6 +58,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import InputError
+from ..solvers.parallel import run_blocks
 from .c3d_layout import _SATURATED, _TO_USER, C3DLayout, _decode_float32, read_layout
 from .raw import RawTake, check_rate, unit_factor
 
@@ -94,20 +95,25 @@ def _read_frames_numpy(path: str | os.PathLike, lay: C3DLayout, start: int, stop
         dt = np.dtype(">i2" if big else "<i2")
     xyz = np.empty((n, P, 3))
     residual = np.empty((n, P), dtype=np.float32)
-    step = max(1, (8 << 20) // max(lay.bytes_per_frame, 1))  # about 8 MB of the file per block
-    with open(path, "rb") as f:
-        f.seek(offset)
-        for lo in range(0, n, step):
-            k = min(step, n - lo)
+    step = max(1, (4 << 20) // max(lay.bytes_per_frame, 1))  # about 4 MB of the file per block
+
+    def read_block(lo: int) -> None:
+        # blocks are read and decoded side by side on the cores, each from its own file handle into its
+        # own frames; a short block raises as a read in order would (the first short one, in order)
+        k = min(step, n - lo)
+        with open(path, "rb") as f:
+            f.seek(offset + lo * lay.bytes_per_frame)
             block = np.fromfile(f, dtype=dt, count=k * words)
-            if block.size != k * words:
-                raise OSError(f"the data block ends after {lo + block.size // words} of {n} frames")
-            block = block.reshape(k, words)[:, : 4 * P]
-            if lay.is_float and lay.processor == "dec":
-                block = _decode_float32(np.ascontiguousarray(block).tobytes(), "dec").reshape(k, 4 * P)
-            block = block.reshape(k, P, 4)
-            xyz[lo : lo + k] = block[..., :3]
-            residual[lo : lo + k] = block[..., 3]
+        if block.size != k * words:
+            raise OSError(f"the data block ends after {lo + block.size // words} of {n} frames")
+        block = block.reshape(k, words)[:, : 4 * P]
+        if lay.is_float and lay.processor == "dec":
+            block = _decode_float32(np.ascontiguousarray(block).tobytes(), "dec").reshape(k, 4 * P)
+        block = block.reshape(k, P, 4)
+        xyz[lo : lo + k] = block[..., :3]
+        residual[lo : lo + k] = block[..., 3]
+
+    run_blocks(read_block, range(0, n, step))
     if not lay.is_float:
         xyz *= abs(lay.scale)
     return xyz, residual

@@ -17,11 +17,24 @@ def frames_text(frames: tuple[int, ...] | np.ndarray, most: int = 8) -> str:
     return ", ".join(parts) + (f" (+{more} more runs)" if more > 0 else "")
 
 
+def visible(points: np.ndarray) -> np.ndarray:
+    """(...,) bool: where points (..., 3) have all three coordinates finite: ``np.isfinite(points).all(-1)``,
+    bit for bit, one pass per coordinate (a reduction over a last axis of length 3 is five times slower on a
+    long take)."""
+    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
+
+
+def extent_frames(F: int, n_frames: int = 400) -> np.ndarray:
+    """The frames :func:`marker_extent` reads of a take of ``F`` frames: up to ``n_frames``, evenly spread.
+    ``marker_extent(points)`` is ``marker_extent(points[extent_frames(len(points))])``: a caller can
+    gather those frames alone instead of a whole long take's columns."""
+    return np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
+
+
 def marker_extent(points: np.ndarray, n_frames: int = 400) -> float:
     """The subject's size: median over (up to ``n_frames`` evenly spread) frames of the
     largest distance between two markers seen in that frame (mm; NaN if no frame shows two)."""
-    F = points.shape[0]
-    idx = np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
+    idx = extent_frames(points.shape[0], n_frames)
     d = []
     for f in idx:  # a few hundred frames, each a small pairwise matrix
         p = points[f]

@@ -7,6 +7,7 @@ from typing import Literal, overload
 
 import numpy as np
 
+from .parallel import run_blocks
 from .rotations import ORDERS, _parse_order
 from .euler_continuity import RestSteps, order_spike_counts
 
@@ -164,15 +165,21 @@ def global_to_local_rot(parent: np.ndarray, rot: np.ndarray) -> np.ndarray:
     local = np.empty_like(rot)  # order "K": the layout of rot; every entry is written below
     root = np.flatnonzero(parent < 0)
     local[:, root] = rot[:, root]
-    tmp = np.empty(rot.shape[0])
-    for s in np.flatnonzero(parent >= 0):
-        G, P = rot[:, s], rot[:, parent[s]]
-        for i in range(3):
-            for j in range(3):
-                out = local[:, s, i, j]
-                np.multiply(P[:, 0, i], G[:, 0, j], out=out)
-                out += np.multiply(P[:, 1, i], G[:, 1, j], out=tmp)
-                out += np.multiply(P[:, 2, i], G[:, 2, j], out=tmp)
+
+    def joints(which: np.ndarray) -> None:  # each joint writes its own entries: halves side by side
+        tmp = np.empty(rot.shape[0])
+        for s in which:
+            G, P = rot[:, s], rot[:, parent[s]]
+            for i in range(3):
+                for j in range(3):
+                    out = local[:, s, i, j]
+                    np.multiply(P[:, 0, i], G[:, 0, j], out=out)
+                    out += np.multiply(P[:, 1, i], G[:, 1, j], out=tmp)
+                    out += np.multiply(P[:, 2, i], G[:, 2, j], out=tmp)
+
+    kids = np.flatnonzero(parent >= 0)
+    half = (kids.size + 1) // 2
+    run_blocks(joints, [kids[:half], kids[half:]])
     return local
 
 

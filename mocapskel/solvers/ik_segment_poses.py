@@ -141,10 +141,10 @@ def segment_poses(
             R[lo:hi, b] = Rb[:, :, b].transpose(2, 0, 1)
         t[lo:hi] = tb.transpose(2, 1, 0)
 
-    starts = list(range(0, F, _POSE_BLOCK))
-    if starts:
-        block(starts[0])  # alone first: it makes the pattern tables that the threads then share
-        run_blocks(block, starts[1:])
+    for b, lut in enumerate(luts):  # the tables of all patterns that blocks share, made before them
+        if lut is not None and lut[1] <= 12:
+            _pattern_ok(*lut, np.zeros(1, dtype=np.int64), collinear_tol, luts_ok, b)
+    run_blocks(block, range(0, F, _POSE_BLOCK))
     todo.sort(key=lambda bf: (bf[0], int(bf[1][0])))  # the same order whatever the threads did
     todo += [(b, np.arange(F)) for b, lut in enumerate(luts) if lut is None]
     if todo:  # not certified by the fast path, or too many points: rigid.kabsch

@@ -22,10 +22,11 @@ import selectors
 import signal
 import sys
 import warnings
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterable, TypeVar
+from typing import Callable, Iterable, Iterator, TypeVar
 
-__all__ = ["Shares", "WorkerLost", "defer_signal", "forking", "n_threads", "run_blocks",
+__all__ = ["Shares", "WorkerLost", "defer_signal", "forking", "n_threads", "run_ahead", "run_blocks",
            "run_forked"]
 
 T = TypeVar("T")
@@ -60,6 +61,27 @@ def run_blocks(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
         return [fn(x) for x in items]
     with ThreadPoolExecutor(max_workers=k, thread_name_prefix="mocapskel") as ex:
         return list(ex.map(fn, items))
+
+
+def run_ahead(fn: Callable[[T], R], items: Iterable[T], ahead: int | None = None) -> Iterator[R]:
+    """``fn(x)`` for every item, yielded in order, computed on threads at most ``ahead`` items
+    (default: twice the threads) ahead of the consumer: results not yet taken are held, so that a
+    long stream of large results (a long take's text, block by block) stays within a few blocks."""
+    items = list(items)
+    k = min(n_threads(), len(items))
+    if k <= 1:
+        yield from map(fn, items)
+        return
+    ahead = max(k, ahead or 2 * k)
+    with ThreadPoolExecutor(max_workers=k, thread_name_prefix="mocapskel") as ex:
+        pending = deque(ex.submit(fn, x) for x in items[:ahead])
+        nxt = ahead
+        while pending:
+            out = pending.popleft().result()
+            if nxt < len(items):
+                pending.append(ex.submit(fn, items[nxt]))
+                nxt += 1
+            yield out
 
 
 def run_forked(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:

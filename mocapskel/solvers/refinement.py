@@ -9,6 +9,7 @@ from typing import Protocol
 import numpy as np
 
 from ..artifacts import Skeleton
+from ..model.measures import visible
 from .calibrate import pick_frames, refine_skeleton
 from .hinges import _hinge_axes
 from .joint_moves import _move_joint, _repose
@@ -223,7 +224,7 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
     refinement of ``anchor`` returned them): that IK is not solved again.
     """
     pts = skel.joints.topology.segments.markers.points
-    vis = np.isfinite(pts).all(-1)
+    vis = visible(pts)
     use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0],
                                               int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
     if use.size < 10:

@@ -23,8 +23,10 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
+from ..model.measures import visible
 from ..solvers.merge_jumps import judged_by_partners, norm3, rigid_jumps
 from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of
+from ..solvers.parallel import run_blocks
 
 VERSION = 5
 
@@ -58,6 +60,9 @@ class Params:
 
 #: Samples (frames x markers) per block where clean works through a take in blocks of frames.
 _BLOCK_SAMPLES = 1 << 20
+#: Samples whose running-median windows are gathered at once (per thread: two threads hold what one
+#: chunk of 200,000 did).
+_WINDOW_CHUNK = 100_000
 
 
 def _visible(points: np.ndarray) -> np.ndarray:
@@ -153,13 +158,16 @@ def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params
     step = np.empty((F, M))
     step[0] = np.inf
     blk = max(1, _BLOCK_SAMPLES // max(M, 1))  # frames at a time: the differences of a whole long take are large
-    for lo in range(1, F, blk):
+
+    def steps(lo: int) -> None:  # blocks write their own frames: side by side on the cores
         hi = min(F, lo + blk)
         with np.errstate(invalid="ignore"):  # inf - inf in a gap
             d = np.subtract(points[lo:hi], points[lo - 1 : hi - 1])
         d *= d
         np.add(d[..., 0], d[..., 1], out=step[lo:hi])  # np.linalg.norm's order: (x² + y²) + z²
         step[lo:hi] += d[..., 2]
+
+    run_blocks(steps, range(1, F, blk))
     np.sqrt(step, out=step)
     big = ~(step <= 0.5 * params.jump_mm)  # NaN (gap edge) counts as big
     big[0] = False
@@ -175,12 +183,15 @@ def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params
     flat = points.reshape(F * M, 3)
     dev = np.empty(fi.size)  # the deviation of each of those samples (only they are needed)
     offs = np.arange(-h, h + 1)
-    for k in range(0, fi.size, 200_000):  # chunks bound the memory of the windows
-        f, m = fi[k : k + 200_000], mi[k : k + 200_000]
+
+    def deviations(k: int) -> None:  # chunks bound the memory of the windows; each writes its own samples
+        f, m = fi[k : k + _WINDOW_CHUNK], mi[k : k + _WINDOW_CHUNK]
         src = np.take(hold, np.clip(f[:, None] + offs, 0, F - 1) * M + m[:, None])  # (K, w) frames
         win = np.take(flat, src * M + m[:, None], axis=0)  # (K, w, 3), every sample seen
         med = np.partition(win, h, axis=1)[:, h]  # the median of an odd window
-        dev[k : k + 200_000] = norm3(flat[f * M + m] - med)
+        dev[k : k + _WINDOW_CHUNK] = norm3(flat[f * M + m] - med)
+
+    run_blocks(deviations, range(0, fi.size, _WINDOW_CHUNK))
     del hold
     # the MAD over the sampled frames only (rows never sampled hold nothing)
     is_s = sampled[fi, mi]
@@ -258,7 +269,7 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         return candidates.copy()
     rate = float(rate) if rate and rate > 0 else 1.0
     pts = points
-    if not np.isfinite(points[vis]).all() or (~vis & np.isfinite(points).all(-1)).any():
+    if not np.array_equal(vis, visible(points)):  # some sample's visibility is not its points' finiteness
         pts = np.where(vis[..., None], points, np.nan)
     sums = pair_sums(pts, vis, max_entries=_PAIR_ENTRIES)
     min_shared = max(3, int(np.ceil(0.15 * rate / sums.stride)))
@@ -276,10 +287,11 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         return out
     max_len = max(1, int(round(params.max_jump_s * rate)))
     margin = 2 * max_len + 8
-    for a in range(0, F, _RIGID_BLOCK):
+
+    def block(a: int) -> None:
+        # blocks are independent (each reads its frames with their margins and writes its own frames
+        # only), so they run on the cores side by side
         b = min(F, a + _RIGID_BLOCK)
-        if not todo[a:b].any():
-            continue
         lo, hi = max(0, a - margin), min(F, b + margin)
         jumps, soft = rigid_jumps(pts[lo:hi], vis[lo:hi], mean, std, reliable, jump_mm=params.rigid_jump_mm,
                                   step_mm=params.rigid_step_mm, max_len=max_len)
@@ -287,6 +299,8 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
         # its partners by half the rigid test's distance (a small jump the partners see less well)
         jumps |= soft & candidates[lo:hi]
         out[a:b] |= jumps[a - lo : b - lo] & judged[a:b]
+
+    run_blocks(block, [a for a in range(0, F, _RIGID_BLOCK) if todo[a : a + _RIGID_BLOCK].any()])
     return out
 
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..artifacts import Joints, Topology
-from ..model.measures import marker_extent
+from ..model.measures import extent_frames, marker_extent
 from ..errors import DataError
 from ..model.leave_out import leave_out
 from ..model.naming import segment_names
@@ -299,10 +299,11 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
     (:func:`hold_far_joints`), their residuals measured again and a warning each."""
     seg = joints.topology.segments
     pts = seg.markers.points
-    groups = [_columns(pts, seg.members(s)) for s in range(seg.n_segments)]
+    groups = _Groups(pts, [seg.members(s) for s in range(seg.n_segments)], diag)
     edges = joints.topology.edges
     centres = joints.centres.copy()
-    extent = marker_extent(np.concatenate(groups, axis=1))
+    # the subject's extent on the frames it reads (of the segments' markers, in segment order)
+    extent = marker_extent(np.take(pts[extent_frames(pts.shape[0])], np.concatenate(groups.members), axis=1))
     held = hold_far_joints(centres, groups, edges, far, diag, extent)
     alt = None
     if joints.alt_centres is not None:  # the rigid stage's other start: its joints ran off as far
@@ -316,7 +317,7 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
     residual = joints.residual.copy()
     for e, (dist, step) in held.items():
         a, b = edges[e]
-        both = np.concatenate([groups[a][diag], groups[b][diag]], axis=1)
+        both = np.concatenate([groups.at_diag(a), groups.at_diag(b)], axis=1)
         residual[e] = np.sqrt(joint_cost(centres[diag, e], both, alpha=0.0))
         per_joint[e]["why"] = per_joint[e].get("why", "") + (
             f"; ran {dist:.0f} mm from its markers along a line they hardly fix: held where that line passes nearest them")
@@ -328,7 +329,38 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
                    info=dict(joints.info, per_joint=per_joint, warnings=warnings))
 
 
-def hold_far_joints(centres: np.ndarray, groups: list, edges: np.ndarray, far: float,
+class _Groups:
+    """Each segment's markers (F, m, 3) of ``pts``, gathered when first asked for (``groups[s]``), and on
+    the diagnostic frames ``diag`` alone (``at_diag(s)``, the same values as ``groups[s][diag]``): a long
+    take's joints are judged on those frames, and a segment's every frame is gathered only for a joint
+    that is moved."""
+
+    def __init__(self, pts: np.ndarray, members: list[np.ndarray], diag: np.ndarray | slice):
+        self.pts, self.members, self.diag = pts, members, diag
+        self._full: dict[int, np.ndarray] = {}
+        self._at: dict[int, np.ndarray] = {}
+        self._pts_diag: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+    def __getitem__(self, s: int) -> np.ndarray:
+        if s not in self._full:
+            self._full[s] = _columns(self.pts, self.members[s])
+        return self._full[s]
+
+    def __iter__(self):
+        return (self[s] for s in range(len(self)))
+
+    def at_diag(self, s: int) -> np.ndarray:
+        if s not in self._at:
+            if self._pts_diag is None:
+                self._pts_diag = self.pts[self.diag]
+            self._at[s] = _columns(self._pts_diag, self.members[s])
+        return self._at[s]
+
+
+def hold_far_joints(centres: np.ndarray, groups: list | _Groups, edges: np.ndarray, far: float,
                     diag: np.ndarray | slice, extent: float | None = None) -> dict[int, tuple[float, float]]:
     """Bring back, in place, joints that ran off along a line the markers hardly fix.
 
@@ -344,14 +376,19 @@ def hold_far_joints(centres: np.ndarray, groups: list, edges: np.ndarray, far: f
     if not np.isfinite(extent):
         return out
     for e, (a, b) in enumerate(edges):
-        A, B = groups[a], groups[b]
         c = centres[:, e]
-        both = np.concatenate([A, B], axis=1)
+        # the distance on the diagnostic frames: those frames of the two segments' markers alone
+        if isinstance(groups, _Groups):
+            near = np.concatenate([groups.at_diag(a), groups.at_diag(b)], axis=1)
+        else:
+            near = np.concatenate([groups[a], groups[b]], axis=1)[diag]
         with pywarnings.catch_warnings():
             pywarnings.simplefilter("ignore", RuntimeWarning)
-            dist = float(np.nanmedian(np.nanmin(np.linalg.norm(both[diag] - c[diag][:, None], axis=-1), axis=1)))
+            dist = float(np.nanmedian(np.nanmin(np.linalg.norm(near - c[diag][:, None], axis=-1), axis=1)))
         if not dist > far * extent:
             continue
+        A, B = groups[a], groups[b]
+        both = np.concatenate([A, B], axis=1)
         frame = A if A.shape[1] >= B.shape[1] else B
         full = np.flatnonzero(np.isfinite(frame).all(axis=(1, 2)))
         if frame.shape[1] < 3 or not full.size:

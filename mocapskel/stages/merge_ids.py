@@ -51,6 +51,7 @@ import numpy as np
 
 from ..artifacts import Markers
 from ..errors import DataError
+from ..model.measures import visible
 from ..solvers.merge_cluster import pose_distance, repulsion_spectral, time_gaps
 from ..solvers.merge_jumps import rigid_jumps, runs_of
 from ..solvers.merge_links import common_partner_cost, link_tracks, triangle_links
@@ -300,7 +301,7 @@ def run(markers: Markers, params: Params = Params()) -> Markers:
     info = dict(markers.info)
     warnings = list(info.get("warnings", []) or [])
     F, L = markers.points.shape[:2]
-    vis0 = np.isfinite(markers.points).all(axis=2)
+    vis0 = visible(markers.points)
     physical = int(vis0.sum(axis=1).max()) if vis0.size else 0
     if not params.enabled or L == 0 or F == 0 or physical == L:
         # physical == L: some frame shows every label at once, so no two labels can be

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Segments, Topology
-from ..model.measures import marker_extent
+from ..model.measures import extent_frames, marker_extent
 from ..errors import DataError
 from ..solvers.parallel import n_threads, run_forked
 from ..solvers.joint_cost import balanced_alpha, distance_penalty
@@ -216,7 +216,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
-    far = params.far * marker_extent(pts[:, inseg])
+    far = params.far * marker_extent(pts[extent_frames(pts.shape[0])][:, inseg])  # the frames it reads alone
     on_sub: dict[tuple[int, int], np.ndarray] = {}  # (a, b), a < b: the joint on the common subsample
     def cost_pair(ab: tuple[int, int]):
         a, b = ab
