@@ -280,6 +280,9 @@ def _finish_report(report: dict, run: Run, bvh: Any) -> None:
 
     report["export"] = bvh.report()
     report["warnings"].extend(bvh.notes)
+    from .report import add_uncertainty
+
+    add_uncertainty(report, run.artifact.skeleton, bvh.naming)
     t_chk = time.perf_counter()
     motion = run.artifact
     findings = checks.run_checks(motion, artifacts.markers_of(motion).points, joint_notes=checks.joint_notes(motion))

@@ -25,8 +25,9 @@ from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb
 from ..solvers.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
+from ..solvers.uncertainty import skeleton_uncertainty
 
-VERSION = 25
+VERSION = 26
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,9 @@ class Params:
     hold_weight: float = 0.01
     """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
     wherever they fix the position."""
+    uncertainty: bool = True
+    """Every joint's uncertainty (:mod:`~mocapskel.solvers.uncertainty`) into ``info["uncertainty"]``;
+    it moves no joint."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -237,13 +241,19 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                 skel = replace(out, info=info)
             else:
                 skel = one[1]
+    refined = skel
     if params.mirror_pairs:
         skel = centre_mirrored_pairs(skel)
     if params.joint_depth and skel.pose_rot is not None:
         skel = deepen_joints(skel, params.hinge_ratio)
     if params.leaf_centre and skel.pose_rot is not None:
         skel = centre_leaf_hinges(skel, params.hinge_ratio)
-    return _with_lengths(skel)
+    skel = _with_lengths(skel)
+    if params.uncertainty:
+        got = skeleton_uncertainty(skel, refined)
+        if got is not None:
+            skel = replace(skel, info=dict(skel.info, uncertainty=got))
+    return skel
 
 
 def _parts(joints: Joints):
