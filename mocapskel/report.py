@@ -150,11 +150,14 @@ def add_uncertainty(report: dict, skel: Any, naming: Any = None) -> None:
             if words is None:
                 child = naming.names[c] if naming is not None else entry["child"]
                 words = f"turn {child} about {axis} (lab axes at the rest frame) as well"
+            else:
+                words = f"{words} (a turn about {axis}, lab axes at the rest frame)"
             i = int(np.argmax(got["prior_share"]))
+            turned = got.get("turned_about")
             warnings.append(
                 f"joint {jname} is set by the prior along {_axis_words(got['directions'][i])}: sd {got['sd_mm'][i]:.0f} mm,"
-                f" {got['prior_share'][i]:.0%} of its precision from the prior (the take turned it"
-                f" {'about that axis only' if got.get('turned_about') is not None else 'too little'});"
-                f" to place it, {words} (about {axis})")
+                f" {got['prior_share'][i]:.0%} of its precision from the prior"
+                + (f" (its turns in the take were mostly about {_axis_words(turned)})" if turned is not None else "")
+                + f"; to place it, {words}")
         got["motion_to_fix"] = words
         entry["uncertainty"] = got

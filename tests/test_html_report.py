@@ -319,7 +319,10 @@ def test_page_renders_in_headless_chromium_without_errors(page, human, tmp_path)
     assert int(attrs["points"]) == seen + mot.rot.shape[1]  # the markers seen + one point per joint
     n_leaves = int((np.linalg.norm(mot.skeleton.end_site, axis=1) > 0).sum())
     assert int(attrs["lines"]) == mot.rot.shape[1] - 1 + n_leaves  # bones + end sites
-    assert attrs["images"] == "5/5", "a plot did not decode"
+    n_img = page.count('<img class="plot')
+    assert attrs["images"] == f"{n_img}/{n_img}", "a plot did not decode"
+    if res.report.get("uncertainty"):  # every joint whose principal axes are drawn: three lines each
+        assert int(attrs["unc"]) == 3 * len(viewer_data(mot)["unc"]["joints"])
     # the slider sets the frame; play advances it (about 1 s of the take at 120 Hz, every frame kept)
     assert attrs["afterslider"] == "300"
     assert 300 < int(attrs["afterplay"]) < 600
