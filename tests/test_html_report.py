@@ -29,7 +29,7 @@ from mocapskel.io.markers import write_markers  # noqa: E402
 from mocapskel.synth.presets import Recipe, make  # noqa: E402
 from mocapskel.io import artifact_files
 
-SECTIONS = ("summary", "warnings", "view", "segments", "topology", "joint-residual", "ik-residual", "bones")
+SECTIONS = ("summary", "warnings", "view", "segments", "topology", "joint-residual", "ik-residual", "bones", "uncertainty")
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
 
@@ -162,7 +162,7 @@ def test_page_is_self_contained_and_has_every_section(page, human):
     for bad in ("http://", "https://", "<script src", "<link", "@import", "url("):
         assert bad not in low, bad
     imgs = re.findall(r'<img class="plot[^"]*" alt="[^"]*" src="data:image/png;base64,([A-Za-z0-9+/=]+)">', page)
-    assert len(imgs) == 5  # distance-std matrix, eigen-gap, segment graph, joint residual, IK residual
+    assert len(imgs) == 6  # distance-std matrix, eigen-gap, segment graph, joint residual, IK residual, joint uncertainty
     for b in imgs:
         assert base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads(re.search(r'<script type="application/json" id="viewer-data">(.*?)</script>', page, re.S).group(1))

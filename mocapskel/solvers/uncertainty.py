@@ -17,8 +17,8 @@ incidental-parameter bias of a profile over per-frame poses). That part is measu
 out: the poses are moved by the errors that noise of the take's level would give them (Gauss-Newton
 steps for draws of that noise, in antithetic pairs), the matrix is formed again there, and its
 mean rise over the fitted poses' is subtracted (the first step of SIMEX, Cook and Stefanski 1994),
-inflated by ``NOISE_Z`` of its standard deviations; what is left is clipped to positive
-semi-definite. A direction is then credited only with what the data show beyond the noise.
+with ``NOISE_Z`` of its standard deviations over; what is left is clipped to positive semi-definite
+(relative to the posterior precision, so that the clipping does not depend on the gauge). A direction is then credited only with what the data show beyond the noise.
 
 Gauge: the cost does not change when a segment's local frame turns (its poses turning back), nor
 when the root's origin moves within the root. The reference frame's rotations are held (as the
@@ -63,16 +63,18 @@ PRIOR_SCALE = 0.5
 SET_BY_PRIOR = 0.5
 
 #: Antithetic pairs of noise draws that measure what the noise alone puts into the curvature.
-NOISE_PAIRS = 4
+NOISE_PAIRS = 3
 
-#: That measure is removed with this many of its standard deviations over (a sum over F frames: a
-#: relative standard deviation of at most sqrt(2 / F)): a direction is credited with what the data
-#: show beyond what the noise would show there with about 98 % probability.
-NOISE_Z = 2.0
+#: That measure is removed with this many of its standard deviations over (the spread of the part the
+#: noise put into this take's curvature, from how unevenly the frames share it, and of the draws' mean):
+#: a direction is credited with what the data show beyond what noise alone would show there but
+#: about once in a thousand. With two, one hinge in 24 (generated chains, 8 seeds) kept a tenth of its
+#: axis to the data.
+NOISE_Z = 3.0
 
 #: Directions (of unit posterior precision) where one pair of draws finds the noise's part under this
-#: are left as they are: it would change their precision by well under 1 %.
-SCREEN = 2e-3
+#: get no more draws: it changes their precision by about 1 % (their sd by half that).
+SCREEN = 1e-2
 
 #: Markers of a child segment closer to a line than this fraction of their spread (the second singular
 #: value of their rotation basis over the first) give no turn about that line.
@@ -247,8 +249,8 @@ def _g_columns(pr: _Problem, R: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.
 
 def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) -> list[tuple]:
     """Per chunk of frames: (its slice, the pose Jacobian transposed JfT (n, nf, 3U) with the reference
-    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T``, the markers'
-    weights (n, U))."""
+    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T``, the
+    markers' weights (n, U))."""
     out = []
     for sl in _chunks(p.shape[0], chunk):
         JfT = pr.jacobian(sl, p, R, d, l)[0]  # its rows zero where a marker is unseen
@@ -260,28 +262,35 @@ def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) ->
 
 
 def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: float, V: np.ndarray,
-                     rng: np.random.Generator, pairs: int) -> np.ndarray:
-    """(k, k) what noise of level ``sigma`` puts into the reduced matrix along ``V`` (ng, k) through the
-    poses, averaged over ``pairs`` draws: for each, the pose errors ``delta = D^-1 Jf^T e`` that a draw
-    ``e`` of that noise gives (the skeleton held), and the part of the constant unknowns' Jacobian that
-    they change, ``G1 = (G(R + delta) - G(R - delta)) / 2`` (an antithetic pair: what is even in
-    ``delta`` cancels), eliminated through the fitted poses: ``G1^T G1 - G1^T Jf D^-1 Jf^T G1``."""
+                     rng: np.random.Generator, pairs: int) -> tuple[np.ndarray, np.ndarray]:
+    """What noise of level ``sigma`` puts into the reduced matrix along ``V`` (ng, k) through the poses,
+    over ``pairs`` draws: for each, the pose errors ``delta = D^-1 Jf^T e`` that a draw ``e`` of that noise
+    gives (the skeleton held), and the part of the constant unknowns' Jacobian that they change,
+    ``G1 = (G(R + delta) - G(R - delta)) / 2`` (an antithetic pair: what is even in ``delta`` cancels),
+    eliminated through the fitted poses: ``G1^T G1 - G1^T Jf D^-1 Jf^T G1``.
+
+    Returns its mean (k, k) and, per direction, the sum over frames of each frame's part squared,
+    averaged over the draws (k,): how unevenly the frames share it (its spread, below)."""
     from .calibrate import _exp
 
     S = R.shape[1]
     k = V.shape[1]
     out = np.zeros((k, k))
+    sq = np.zeros(k)
     for _ in range(pairs):
         for sl, JfT, Li, w in factors:
             n = sl.stop - sl.start
             e = rng.normal(0.0, sigma, (n, JfT.shape[2], 1))
             step = (Li.transpose(0, 2, 1) @ (Li @ (JfT @ e)))[..., 0]  # D^-1 Jf^T e
             turn = _exp(step[:, 3:].reshape(n, S, 3))
-            G1 = 0.5 * (_g_columns(pr, turn @ R[sl], w, V) - _g_columns(pr, np.swapaxes(turn, -1, -2) @ R[sl], w, V))
-            Y = (Li @ (JfT @ G1)).reshape(-1, k)
-            G1 = G1.reshape(-1, k)
+            # G is linear in the rotations: G(R+) - G(R-) = G(R+ - R-)
+            G1 = _g_columns(pr, 0.5 * (turn - np.swapaxes(turn, -1, -2)) @ R[sl], w, V)
+            Y = Li @ (JfT @ G1)
+            per_frame = (G1 * G1).sum(1) - (Y * Y).sum(1)  # (n, k)
+            sq += (per_frame * per_frame).sum(0)
+            G1, Y = G1.reshape(-1, k), Y.reshape(-1, k)
             out += G1.T @ G1 - Y.T @ Y
-    return out / max(pairs, 1)
+    return out / max(pairs, 1), sq / max(pairs, 1)
 
 
 def _dof(pr: _Problem) -> tuple[int, int]:
@@ -354,8 +363,9 @@ def joint_uncertainty(
     # the directions the prior weighs in at all: the data's share rho of the precision along each (the
     # generalized eigenvectors of the data's part against B, B-orthonormal), the 3K where it is least (and the gauge's, of none)
     rho, V = scipy.linalg.eigh(H0 / s2, B)
-    V = V[:, : min(3 * K + int(fix_g.sum()), pr.ng)]
-    rho = rho[: V.shape[1]]
+    take = np.arange(min(3 * K + int(fix_g.sum()), pr.ng))
+    take = take[np.abs(V[np.ix_(~fix_g, take)]).max(0) > 0]  # the gauge's own directions left out
+    V, rho = V[:, take], rho[take]
     V[fix_g] = 0.0
     # what the noise alone puts there (see the module docstring), taken out with NOISE_Z of its standard
     # deviations over, and what is left clipped at zero: in that basis, independent of the gauge chosen
@@ -363,12 +373,20 @@ def joint_uncertainty(
     # precision by more than SCREEN (along the others the data outweigh it: left as they are)
     rng = np.random.default_rng(seed)
     factors = _pose_factors(pr, p, R, d, l, ref_frame, chunk)
-    spur = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V, rng, 1) / s2
-    keep = np.flatnonzero(np.diag(spur) > SCREEN)
+    spur, sq = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V, rng, 1)
+    draws = np.ones(V.shape[1])
+    keep = np.flatnonzero(np.diag(spur) > SCREEN * s2)
     if keep.size and NOISE_PAIRS > 1:
-        more = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V[:, keep], rng, NOISE_PAIRS - 1) / s2
+        more, sq_more = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V[:, keep], rng, NOISE_PAIRS - 1)
         spur[np.ix_(keep, keep)] = (spur[np.ix_(keep, keep)] + (NOISE_PAIRS - 1) * more) / NOISE_PAIRS
-    ev, W = np.linalg.eigh(np.diag(rho) - (1.0 + NOISE_Z * np.sqrt(2.0 / p.shape[0])) * 0.5 * (spur + spur.T))
+        sq[keep] = (sq[keep] + (NOISE_PAIRS - 1) * sq_more) / NOISE_PAIRS
+        draws[keep] = NOISE_PAIRS
+    spur, sq = 0.5 * (spur + spur.T) / s2, sq / s2**2
+    # the spread of that part in the take itself: a sum over frames of parts a frame's noise puts in, each
+    # at most one degree of freedom (chi-square: its mean squared is a third of its square's mean), and
+    # the spread of its mean over ``draws``
+    spread = np.sqrt((2.0 / 3.0) * sq * (1.0 + 1.0 / draws))
+    ev, W = np.linalg.eigh(np.diag(rho) - spur - NOISE_Z * np.diag(spread))
     M = (W * np.maximum(ev, 0.0)) @ W.T
     BV = B @ V
     lam = B + BV @ (M - np.diag(rho)) @ BV.T
