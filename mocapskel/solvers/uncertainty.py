@@ -52,6 +52,7 @@ import numpy as np
 import scipy.linalg
 
 from .calibrate import _Problem
+from .parallel import run_blocks
 
 __all__ = ["JointUncertainty", "joint_uncertainty", "segment_sizes", "PRIOR_SCALE", "SET_BY_PRIOR"]
 
@@ -209,7 +210,9 @@ def _damped(Hff: np.ndarray) -> np.ndarray:
 
 
 def _chunks(F: int, chunk: int) -> list[slice]:
-    return [slice(a, min(F, a + chunk)) for a in range(0, F, chunk)]
+    """An even number of equal stretches of at most ``chunk`` frames (two threads get equal shares)."""
+    cut = np.linspace(0, F, 2 * -(-F // (2 * chunk)) + 1).round().astype(int)
+    return [slice(int(a), int(b)) for a, b in zip(cut[:-1], cut[1:]) if b > a]
 
 
 def reduced_normal_matrix(pr: _Problem, p, R, d, l, ref_frame: int, fix_g: np.ndarray, chunk: int = 128
@@ -217,13 +220,17 @@ def reduced_normal_matrix(pr: _Problem, p, R, d, l, ref_frame: int, fix_g: np.nd
     """The Gauss-Newton matrix over the constant unknowns with every pose eliminated (ng, ng), the
     reference frame's rotations held and the unknowns ``fix_g`` fixed (their rows and columns zero)."""
     ng = pr.ng
-    H = np.zeros((ng, ng))
-    for sl in _chunks(p.shape[0], chunk):
+
+    def part(sl: slice) -> np.ndarray:
         Hff, X, Hgg_f, _ = pr.normal_equations(sl, p, R, d, l)
         _hold_reference(Hff, X, sl, ref_frame)
         X[:, :, :ng][:, :, fix_g] = 0.0
         YtY, _ = pr.eliminate(_damped(Hff), X)
-        H += Hgg_f - YtY[:ng, :ng]
+        return Hgg_f - YtY[:ng, :ng]
+
+    H = np.zeros((ng, ng))
+    for h in run_blocks(part, _chunks(p.shape[0], chunk)):  # summed in chunk order
+        H += h
     H = 0.5 * (H + H.T)
     H[fix_g, :] = 0.0
     H[:, fix_g] = 0.0
@@ -251,23 +258,24 @@ def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) ->
     """Per chunk of frames: (its slice, the pose Jacobian transposed JfT (n, nf, 3U) with the reference
     frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T``, the
     markers' weights (n, U))."""
-    out = []
-    for sl in _chunks(p.shape[0], chunk):
+    def one(sl: slice) -> tuple:
         JfT = pr.jacobian(sl, p, R, d, l)[0]  # its rows zero where a marker is unseen
         if sl.start <= ref_frame < sl.stop:
             JfT[ref_frame - sl.start, 3:] = 0.0
         Li = np.linalg.inv(np.linalg.cholesky(_damped(JfT @ JfT.transpose(0, 2, 1))))
-        out.append((sl, JfT, Li, pr.w[sl][:, pr.used]))
-    return out
+        return sl, JfT, Li, pr.w[sl][:, pr.used]
+
+    return run_blocks(one, _chunks(p.shape[0], chunk))
 
 
 def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: float, V: np.ndarray,
-                     rng: np.random.Generator, pairs: int) -> tuple[np.ndarray, np.ndarray]:
+                     seed: tuple, pairs: int) -> tuple[np.ndarray, np.ndarray]:
     """What noise of level ``sigma`` puts into the reduced matrix along ``V`` (ng, k) through the poses,
     over ``pairs`` draws: for each, the pose errors ``delta = D^-1 Jf^T e`` that a draw ``e`` of that noise
     gives (the skeleton held), and the part of the constant unknowns' Jacobian that they change,
     ``G1 = (G(R + delta) - G(R - delta)) / 2`` (an antithetic pair: what is even in ``delta`` cancels),
-    eliminated through the fitted poses: ``G1^T G1 - G1^T Jf D^-1 Jf^T G1``.
+    eliminated through the fitted poses: ``G1^T G1 - G1^T Jf D^-1 Jf^T G1``. Each stretch of frames draws
+    from its own generator, seeded by ``seed`` and its index (the same draws on any number of threads).
 
     Returns its mean (k, k) and, per direction, the sum over frames of each frame's part squared,
     averaged over the draws (k,): how unevenly the frames share it (its spread, below)."""
@@ -275,11 +283,13 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
 
     S = R.shape[1]
     k = V.shape[1]
-    out = np.zeros((k, k))
-    sq = np.zeros(k)
-    for _ in range(pairs):
-        for sl, JfT, Li, w in factors:
-            n = sl.stop - sl.start
+
+    def one(j: int) -> tuple[np.ndarray, np.ndarray]:
+        sl, JfT, Li, w = factors[j]
+        n = sl.stop - sl.start
+        rng = np.random.default_rng((*seed, j))
+        out, sq = np.zeros((k, k)), np.zeros(k)
+        for _ in range(pairs):
             e = rng.normal(0.0, sigma, (n, JfT.shape[2], 1))
             step = (Li.transpose(0, 2, 1) @ (Li @ (JfT @ e)))[..., 0]  # D^-1 Jf^T e
             turn = _exp(step[:, 3:].reshape(n, S, 3))
@@ -290,6 +300,12 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
             sq += (per_frame * per_frame).sum(0)
             G1, Y = G1.reshape(-1, k), Y.reshape(-1, k)
             out += G1.T @ G1 - Y.T @ Y
+        return out, sq
+
+    out, sq = np.zeros((k, k)), np.zeros(k)
+    for o, q in run_blocks(one, range(len(factors))):  # summed in stretch order
+        out += o
+        sq += q
     return out / max(pairs, 1), sq / max(pairs, 1)
 
 
@@ -371,13 +387,12 @@ def joint_uncertainty(
     # deviations over, and what is left clipped at zero: in that basis, independent of the gauge chosen
     # one pair screens every direction; the rest go to those where the noise's part changes the
     # precision by more than SCREEN (along the others the data outweigh it: left as they are)
-    rng = np.random.default_rng(seed)
     factors = _pose_factors(pr, p, R, d, l, ref_frame, chunk)
-    spur, sq = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V, rng, 1)
+    spur, sq = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V, (seed, 0), 1)
     draws = np.ones(V.shape[1])
     keep = np.flatnonzero(np.diag(spur) > SCREEN * s2)
     if keep.size and NOISE_PAIRS > 1:
-        more, sq_more = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V[:, keep], rng, NOISE_PAIRS - 1)
+        more, sq_more = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V[:, keep], (seed, 1), NOISE_PAIRS - 1)
         spur[np.ix_(keep, keep)] = (spur[np.ix_(keep, keep)] + (NOISE_PAIRS - 1) * more) / NOISE_PAIRS
         sq[keep] = (sq[keep] + (NOISE_PAIRS - 1) * sq_more) / NOISE_PAIRS
         draws[keep] = NOISE_PAIRS
