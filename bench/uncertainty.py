@@ -2,6 +2,7 @@
 
     python -m bench.uncertainty coverage [--seeds 1-6] [--frames 1200]
     python -m bench.uncertainty cost [--runs 3] [TAKE ...]
+    python -m bench.uncertainty real TAKE ...
 
 coverage: generated human range-of-motion takes (seeded), fitted to the rigid stage; each joint's error
 relative to its child segment's markers (the fitted joint carried into every frame by the best-fit
@@ -16,6 +17,8 @@ assumes).
 
 cost: the rigid stage with and without the uncertainty, interleaved, medians of ``--runs``; and a
 whole fit's time for scale.
+
+real: real takes fitted: the noise, each take's least certain joints, the warnings for joints the prior sets.
 """
 from __future__ import annotations
 
@@ -139,6 +142,28 @@ def cost(takes: list[str], runs: int) -> None:
         sys.stdout.flush()
 
 
+def real(takes: list[str]) -> None:
+    """Per take: the noise, each joint's largest sd, and the joints the prior sets with what would place them."""
+    from mocapskel.pipeline import fit
+
+    for path in takes:
+        try:
+            rep = fit(path, make_params()).report
+        except Exception as err:  # a take the tool refuses: said, and the next
+            print(f"- {path.split('/')[-1]}: refused ({str(err).splitlines()[0][:120]})")
+            continue
+        unc = rep.get("uncertainty") or {}
+        js = [j for j in rep.get("joints", []) if j.get("uncertainty")]
+        big = sorted(((max(j["uncertainty"]["sd_mm"]), j["child"]) for j in js), reverse=True)[:3]
+        said = [w for w in rep["warnings"] if "set by the prior" in w]
+        print(f"- {path.split('/')[-1]}: noise {unc.get('noise_mm')} mm, {len(js)} joints, {unc.get('seconds')} s of"
+              f" {rep['seconds'].get('total', 0):.2f} s; largest sd: " + ", ".join(f"{n} {v:.1f} mm" for v, n in big)
+              + f"; set by the prior: {len(said)}")
+        for w in said:
+            print(f"  - {w}")
+        sys.stdout.flush()
+
+
 def _seeds(text: str) -> list[int]:
     a, _, b = text.partition("-")
     return list(range(int(a), int(b or a) + 1))
@@ -150,6 +175,8 @@ def main(argv: list[str] | None = None) -> None:
     c = sub.add_parser("coverage")
     c.add_argument("--seeds", default="1-6")
     c.add_argument("--frames", type=int, default=1200)
+    r = sub.add_parser("real")
+    r.add_argument("takes", nargs="+")
     k = sub.add_parser("cost")
     k.add_argument("--runs", type=int, default=3)
     k.add_argument("takes", nargs="*", default=["sample_data/human_rom.c3d"])
@@ -159,6 +186,8 @@ def main(argv: list[str] | None = None) -> None:
     with threadpool_limits(limits=1, user_api="blas"):  # as the pipeline runs its stages
         if args.what == "coverage":
             coverage(_seeds(args.seeds), args.frames)
+        elif args.what == "real":
+            real(args.takes)
         else:
             cost(args.takes, args.runs)
 
