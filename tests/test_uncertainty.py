@@ -186,3 +186,34 @@ def test_true_joints_fall_inside_the_95_percent_region_at_the_models_map():
         d2 += [e[0] for e in joint_errors(sk, take.truth, sk.info["uncertainty"])]
     assert len(d2) >= 24
     assert np.mean(np.array(d2) <= CHI2_3_95) >= 0.8
+
+
+def test_the_joint_is_measured_in_the_frame_of_its_childs_markers():
+    """The first-order map to a joint's position relative to its child's markers: a turn of the segment's
+    frame (every marker offset turned about the joint) leaves it, a shift of the markers moves it the
+    other way; with two markers, a turn about their line is not seen by them and stays in it."""
+    rng = np.random.default_rng(0)
+    parent = np.array([-1, 0])
+    for n in (3, 2):
+        local = np.concatenate([rng.normal(0, 50, (3, 3)), rng.normal(0, 50, (n, 3)) + [0, 0, 200]])
+        seg = np.array([0, 0, 0] + [1] * n)
+        pr = _Problem(parent, seg, np.zeros((2, seg.size, 3)))
+        A, frame = unc_mod._joint_operator(pr, local, 1)
+        assert frame == n
+        mine = np.flatnonzero(seg == 1)
+        cols = np.concatenate([np.arange(pr.gl[m], pr.gl[m] + 3) for m in mine])
+        w = rng.normal(size=3)
+        turn, shift = np.zeros(pr.ng), np.zeros(pr.ng)
+        turn[cols] = np.cross(w, local[mine]).ravel()
+        shift[cols] = np.tile([1.0, 2.0, 3.0], n)
+        assert np.allclose(A @ shift, [-1.0, -2.0, -3.0])
+        if n == 3:
+            assert np.allclose(A @ turn, 0.0, atol=1e-9)
+        else:
+            axis = local[mine[1]] - local[mine[0]]
+            axis /= np.linalg.norm(axis)
+            about = np.zeros(pr.ng)
+            about[cols] = np.cross(axis, local[mine]).ravel()
+            across = turn - (w @ axis) * about  # the part of the turn the two markers do see
+            assert np.allclose(A @ across, 0.0, atol=1e-9)
+            assert np.linalg.norm(A @ about) > 1.0  # the joint 200 mm off their line moves with that turn
