@@ -153,6 +153,8 @@ def add_uncertainty(report: dict, skel: Any, naming: Any = None) -> None:
             else:
                 words = f"{words} (a turn about {axis}, lab axes at the rest frame)"
             i = int(np.argmax(got["prior_share"]))
+            if sum(float(x) > 0.5 for x in got["prior_share"]) >= 2:  # free along two directions: it hardly turned
+                words = f"turn it more, about two axes across each other: {words}"
             turned = got.get("turned_about")
             warnings.append(
                 f"joint {jname} is set by the prior along {_axis_words(got['directions'][i])}: sd {got['sd_mm'][i]:.0f} mm,"
