@@ -270,7 +270,7 @@ def fit(
     bvh, checked = _export_and_check(run, params)
     run.seconds["total"] = time.perf_counter() - t
     report = build_report(run, params)
-    _finish_report(report, bvh, checked)
+    _finish_report(report, run, bvh, checked)
     return FitResult(motion=run.artifact, bvh=bvh, report=report, run=run)
 
 
@@ -300,14 +300,16 @@ def _export_and_check(run: Run, params: dict[str, Any]) -> tuple[Any, tuple[list
     return bvh, checked
 
 
-def _finish_report(report: dict, bvh: Any, checked: tuple[list, float]) -> None:
-    """The export's naming and notes, and the checks of the solved motion (findings, seconds), into ``report``."""
+def _finish_report(report: dict, run: Run, bvh: Any, checked: tuple[list, float]) -> None:
+    """The export's naming and notes, the joints' uncertainty, and the checks of the solved motion (findings, seconds), into ``report``."""
     from . import checks
+    from .report import add_uncertainty
 
     report["export"] = bvh.report()
     if bvh.rest_frame is not None:
         report["rest_frame"] = bvh.rest_frame  # the BVH's rest pose (the skeleton's may be another frame's)
     report["warnings"].extend(bvh.notes)
+    add_uncertainty(report, run.artifact.skeleton, bvh.naming)
     findings, secs = checked
     checks.add_to_report(report, findings)
     report["seconds"]["checks"] = round(secs, 4)
@@ -339,7 +341,7 @@ def _fit_subjects(first: Run, groups: list, params: dict[str, Any], cache: Cache
         run.seconds["total"] = time.perf_counter() - t0
         run.warnings.append(f"the take holds {K} subjects; this fit is subject {i} ({len(idx)} markers)")
         report = build_report(run, params)
-        _finish_report(report, bvh, checked)
+        _finish_report(report, run, bvh, checked)
         results.append(FitResult(motion=run.artifact, bvh=bvh, report=report, run=run))
     listing = [
         {"index": i, "markers": [mk_all.labels[j] for j in g], "segments": len(r.bvh.skeleton.names),

@@ -97,3 +97,70 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
     rep["cached_stages"] = list(run.cached)
     rep["warnings"] = warnings
     return rep
+
+
+#: What a subject does so that the markers place a joint they left to the prior (humanoid joints): the
+#: joint turned about another axis than the one it turned about.
+MOTION_TO_FIX: dict[str, str] = {
+    "Hip": "turn the thigh sideways (abduction) and about its own axis as well as forward",
+    "Knee": "turn the shank about its own axis (the foot in and out) with the knee bent, as well as bending it",
+    "Ankle": "turn the foot in and out (inversion) as well as up and down",
+    "Toe": "bend the toes sideways as well as up and down",
+    "Shoulder": "raise the arm sideways and turn it about its own axis as well as forward",
+    "Elbow": "turn the forearm (palm up, palm down) with the elbow bent, as well as bending it",
+    "Wrist": "bend the hand sideways as well as up and down",
+    "Sternoclavicular": "shrug the shoulder up and down as well as forward and back",
+    "Lumbar": "bend the trunk sideways and twist it as well as forward",
+    "Thoracic": "bend the chest sideways and twist it as well as forward",
+    "UpperThoracic": "bend the chest sideways and twist it as well as forward",
+    "LowerNeck": "tilt the head sideways and turn it as well as nodding",
+    "Neck": "tilt the head sideways and turn it as well as nodding",
+    "UpperNeck": "tilt the head sideways and turn it as well as nodding",
+}
+
+
+def _axis_words(v: Any) -> str:
+    return "(" + ", ".join(f"{float(x):.2f}" for x in v) + ")"
+
+
+def add_uncertainty(report: dict, skel: Any, naming: Any = None) -> None:
+    """Each joint's uncertainty (the rigid stage's ``info["uncertainty"]``) into the report's joints, the
+    prior and the take's noise into ``report["uncertainty"]``, and a warning for every joint the prior
+    sets, with the motion that would place it (in words for a humanoid's joints, else as an axis)."""
+    unc = skel.info.get("uncertainty") if skel is not None else None
+    if not unc:
+        report["uncertainty"] = None
+        return
+    report["uncertainty"] = {k: v for k, v in unc.items() if k != "joints"}
+    humanoid = naming is not None and getattr(naming, "humanoid", False)
+    names = list(skel.names)
+    warnings = report.setdefault("warnings", [])
+    for entry in report.get("joints", []):
+        got = unc["joints"].get(entry.get("child"))
+        if got is None:
+            continue
+        got = dict(got)
+        c = names.index(entry["child"])
+        jname = naming.joint_names[c] if naming is not None and c < len(naming.joint_names) else ""
+        jname = jname or f"{entry['parent']}-{entry['child']}"
+        words = None
+        if got["set_by_prior"]:
+            axis = _axis_words(got["lacks_rotation_about"])
+            base = jname.removeprefix("Left").removeprefix("Right")
+            words = MOTION_TO_FIX.get(base) if humanoid else None
+            if words is None:
+                child = naming.names[c] if naming is not None else entry["child"]
+                words = f"turn {child} about {axis} (lab axes at the rest frame) as well"
+            else:
+                words = f"{words} (a turn about {axis}, lab axes at the rest frame)"
+            i = int(np.argmax(got["prior_share"]))
+            if sum(float(x) > 0.5 for x in got["prior_share"]) >= 2:  # free along two directions: it hardly turned
+                words = f"turn it more, about two axes across each other: {words}"
+            turned = got.get("turned_about")
+            warnings.append(
+                f"joint {jname} is set by the prior along {_axis_words(got['directions'][i])}: sd {got['sd_mm'][i]:.0f} mm,"
+                f" {got['prior_share'][i]:.0%} of its precision from the prior"
+                + (f" (its turns in the take were mostly about {_axis_words(turned)})" if turned is not None else "")
+                + f"; to place it, {words}")
+        got["motion_to_fix"] = words
+        entry["uncertainty"] = got

@@ -29,7 +29,7 @@ from mocapskel.io.markers import write_markers  # noqa: E402
 from mocapskel.synth.presets import Recipe, make  # noqa: E402
 from mocapskel.io import artifact_files
 
-SECTIONS = ("summary", "warnings", "view", "segments", "topology", "joint-residual", "ik-residual", "bones")
+SECTIONS = ("summary", "warnings", "view", "segments", "topology", "joint-residual", "ik-residual", "bones", "uncertainty")
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
 
@@ -162,7 +162,7 @@ def test_page_is_self_contained_and_has_every_section(page, human):
     for bad in ("http://", "https://", "<script src", "<link", "@import", "url("):
         assert bad not in low, bad
     imgs = re.findall(r'<img class="plot[^"]*" alt="[^"]*" src="data:image/png;base64,([A-Za-z0-9+/=]+)">', page)
-    assert len(imgs) == 5  # distance-std matrix, eigen-gap, segment graph, joint residual, IK residual
+    assert len(imgs) == 6  # distance-std matrix, eigen-gap, segment graph, joint residual, IK residual, joint uncertainty
     for b in imgs:
         assert base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads(re.search(r'<script type="application/json" id="viewer-data">(.*?)</script>', page, re.S).group(1))
@@ -319,7 +319,10 @@ def test_page_renders_in_headless_chromium_without_errors(page, human, tmp_path)
     assert int(attrs["points"]) == seen + mot.rot.shape[1]  # the markers seen + one point per joint
     n_leaves = int((np.linalg.norm(mot.skeleton.end_site, axis=1) > 0).sum())
     assert int(attrs["lines"]) == mot.rot.shape[1] - 1 + n_leaves  # bones + end sites
-    assert attrs["images"] == "5/5", "a plot did not decode"
+    n_img = page.count('<img class="plot')
+    assert attrs["images"] == f"{n_img}/{n_img}", "a plot did not decode"
+    if res.report.get("uncertainty"):  # every joint whose principal axes are drawn: three lines each
+        assert int(attrs["unc"]) == 3 * len(viewer_data(mot)["unc"]["joints"])
     # the slider sets the frame; play advances it (about 1 s of the take at 120 Hz, every frame kept)
     assert attrs["afterslider"] == "300"
     assert 300 < int(attrs["afterplay"]) < 600

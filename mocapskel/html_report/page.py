@@ -13,7 +13,7 @@ from ..artifacts import Motion
 from ..errors import UsageError
 from .colours import colour
 from .data import _chain, joint_residual_series, segment_residual_series
-from .plots import _plot_dist_std, _plot_eigengap, _plot_graph, _plot_series
+from .plots import _plot_dist_std, _plot_eigengap, _plot_graph, _plot_series, _plot_uncertainty
 from .template import _CSS, _PAGE, _VIEWER_HTML, _VIEWER_JS
 from .viewer import MAX_VIEWER_FRAMES, _json_for_script, viewer_data
 
@@ -137,6 +137,31 @@ def _bones_table(report: dict, motion: Motion) -> str:
     return _table(["segment", "parent", "markers", "bone length (mm)", "rigid fit rms (mm)", "IK rms (mm)"], rows, "num")
 
 
+def _uncertainty(report: dict) -> str:
+    """The joints' uncertainty: the bar chart, then a table with the motion that would place each joint
+    the prior sets."""
+    unc = report.get("uncertainty")
+    if not unc:
+        return '<p class="note">This fit carries no joint uncertainty (the skeleton was not refined).</p>'
+    rows = []
+    for j in report.get("joints", []):
+        u = j.get("uncertainty")
+        if not u:
+            continue
+        rows.append([_fmt(j.get("parent")), _fmt(j.get("child")), " / ".join(f"{x:.3g}" for x in u["sd_mm"]),
+                     " / ".join(f"{x:.2f}" for x in u["prior_share"]), _fmt(u["prior_sd_mm"]),
+                     "yes" if u["set_by_prior"] else "no", _fmt(u.get("motion_to_fix"))])
+    prior = unc.get("prior") or {}
+    note = (f'<p class="note">Each joint\'s position relative to its child segment\'s markers: the standard deviation '
+            f"along its three principal directions (the Laplace approximation of the skeleton model, the take's noise "
+            f"{_fmt(unc.get('noise_mm'))} mm per coordinate from {_fmt(unc.get('frames'))} frames), and the share of the "
+            f"precision along each that comes from the prior (sd {_fmt(prior.get('sd_per_segment_size'))} of the child "
+            f"segment's size); a joint is set by the prior where that share exceeds {_fmt(prior.get('set_by_prior_above'))}. "
+            "The 3-D view draws each joint's principal axes, two sd long.</p>")
+    return (_plot_uncertainty(report) + note
+            + _table(["parent", "child", "sd (mm)", "prior share", "prior sd (mm)", "set by prior", "to place it"], rows))
+
+
 def _warnings(report: dict) -> str:
     ws = report.get("warnings") or []
     if not ws:
@@ -233,6 +258,7 @@ def build_html(motion: Motion, report: dict, *, max_frames: int = MAX_VIEWER_FRA
                         "per-segment IK residual over time", gap=gap)
     sections.append(("ik-residual", "IK residual over time", body))
     sections.append(("bones", "Bones", _bones_table(report, motion)))
+    sections.append(("uncertainty", "Joint uncertainty", _uncertainty(report)))
 
     nav = " · ".join(f'<a href="#{sid}">{html.escape(h)}</a>' for sid, h, _ in sections)
     body = "\n".join(f'<section id="{sid}"><h2>{html.escape(h)}</h2>\n{b}\n</section>' for sid, h, b in sections)

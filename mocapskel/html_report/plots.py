@@ -232,3 +232,28 @@ def _plot_series(
         title += f"\nlong take: the line is the rms over bins of {math.ceil(t.size / MAX_PLOT_SAMPLES)} frames, the band their minimum to maximum"
     fig.suptitle(title, fontsize=9)
     return _png(fig, alt)
+
+
+def _plot_uncertainty(report: dict) -> str:
+    """Per joint, its standard deviations (mm, log scale) along its three principal directions, the
+    prior's standard deviation beside them; a bar is red where the prior sets the joint."""
+    rows = [(f"{j.get('parent')}–{j.get('child')}", j["uncertainty"]) for j in report.get("joints", [])
+            if j.get("uncertainty")]
+    if not rows:
+        return ""
+    fig = _figure(9.0, 0.9 + 0.42 * len(rows))
+    ax = fig.add_subplot(1, 1, 1)
+    h = 0.26
+    for r, (_, u) in enumerate(rows):
+        for k in range(3):
+            sd = max(float(u["sd_mm"][k]), 1e-3)
+            red = float(u["prior_share"][k]) > 0.5
+            ax.barh(r + (k - 1) * h, sd, height=h * 0.9, color="#d62728" if red else ("#1f77b4", "#4f97d4", "#8fbfe4")[k])
+        ax.plot([u["prior_sd_mm"]] * 2, [r - 1.5 * h, r + 1.5 * h], color="#222222", lw=1.5)
+    ax.set_xscale("log")
+    ax.set_yticks(range(len(rows)), [n for n, _ in rows], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("sd (mm) along the joint's principal directions, largest first; black tick: the prior's sd; "
+                  "red: set by the prior", fontsize=8)
+    ax.grid(True, axis="x", which="both", alpha=0.3)
+    return _png(fig, "per-joint uncertainty: standard deviation along each principal direction")

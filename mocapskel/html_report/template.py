@@ -55,13 +55,14 @@ _VIEWER_HTML = """<div class="controls">
 <div class="controls">
 <label><input type="checkbox" id="viewer-markers" checked> markers</label>
 <label><input type="checkbox" id="viewer-skeleton" checked> skeleton</label>
+<label><input type="checkbox" id="viewer-unc" checked> joint uncertainty (2 sd)</label>
 <label><input type="checkbox" id="viewer-follow" checked> follow the subject</label>
 <label>up axis <select id="viewer-up"><option value="z">Z</option><option value="y">Y</option></select></label>
 <span class="note">drag to rotate, wheel to zoom, double-click to reset; space plays/pauses; {decim}</span>
 </div>
 <canvas id="viewer" width="960" height="600" aria-label="3-D view of the markers and the skeleton"></canvas>
-<div>{legend}<span class="legend"><span class="chip" style="background:#222"></span>bones, joints (white)</span></div>
-<div id="viewer-status" data-ok="0" data-points="0" data-lines="0" data-frame="-1" data-images="-1" data-error=""></div>
+<div>{legend}<span class="legend"><span class="chip" style="background:#222"></span>bones, joints (white)</span><span class="legend"><span class="chip" style="background:#ff7f0e"></span>joint's principal axes, ±2 sd</span><span class="legend"><span class="chip" style="background:#d62728"></span>… of a joint the prior sets</span></div>
+<div id="viewer-status" data-ok="0" data-points="0" data-lines="0" data-unc="0" data-frame="-1" data-images="-1" data-error=""></div>
 <noscript><p class="note">The 3-D view needs JavaScript.</p></noscript>
 <script type="application/json" id="viewer-data">{data}</script>
 <script>{script}</script>"""
@@ -88,6 +89,7 @@ _VIEWER_JS = r"""
   var showSkeleton = document.getElementById("viewer-skeleton");
   var upSelect = document.getElementById("viewer-up");
   var follow = document.getElementById("viewer-follow");
+  var showUnc = document.getElementById("viewer-unc");
   var q = D.quantum_mm, n = D.n, S = D.names.length, M = D.labels.length;
   var view = { yaw: -0.7, pitch: 0.3, zoom: 1.0 };
   var frame = 0, playing = false, t0 = 0, f0 = 0;
@@ -205,6 +207,22 @@ _VIEWER_JS = r"""
         if (p) { dot(project(p, W, H), 4.5); drawn++; }
       }
     }
+    var uncLines = 0;
+    if (showUnc.checked && D.unc && D.unc.joints.length) {
+      ctx.lineWidth = 2; ctx.lineCap = "round";
+      for (i = 0; i < D.unc.joints.length; i++) {
+        p = point(D.joints, frame, D.unc.joints[i]);
+        if (!p) { continue; }
+        ctx.strokeStyle = D.unc.prior[i] ? "#d62728" : "#ff7f0e";
+        for (var k = 0; k < 3; k++) {
+          var v = point(D.unc.axes, frame, 3 * i + k);
+          if (!v) { continue; }
+          line(project([p[0] - v[0], p[1] - v[1], p[2] - v[2]], W, H), project([p[0] + v[0], p[1] + v[1], p[2] + v[2]], W, H));
+          uncLines++;
+        }
+      }
+    }
+    status.setAttribute("data-unc", String(uncLines));
     if (showMarkers.checked) {
       ctx.lineWidth = 0.8; ctx.strokeStyle = "#333333";
       for (i = 0; i < M; i++) {
@@ -240,6 +258,7 @@ _VIEWER_JS = r"""
   showMarkers.addEventListener("change", draw);
   showSkeleton.addEventListener("change", draw);
   follow.addEventListener("change", draw);
+  showUnc.addEventListener("change", draw);
   upSelect.addEventListener("change", function () { extent(); draw(); });
   document.addEventListener("keydown", function (ev) {
     if (ev.code === "Space" && ev.target === document.body) { ev.preventDefault(); toggle(); }

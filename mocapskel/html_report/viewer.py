@@ -94,7 +94,28 @@ def viewer_data(motion: Motion, max_frames: int = MAX_VIEWER_FRAMES) -> dict[str
         "markers": _quantise(pts, origin),
         "joints": _quantise(jp, origin),
         "ends": _quantise(ends, origin),
+        "unc": _uncertainty_axes(sk, sub.rot),
     }
+
+
+def _uncertainty_axes(sk, rot: np.ndarray) -> dict[str, Any]:
+    """Each joint's principal axes of uncertainty, two standard deviations long, turned with its child
+    segment in every kept frame (``rot`` (n, S, 3, 3)): ``joints`` (segments whose joint has an axis of at
+    least half a millimetre), ``prior`` (set by the prior) and per frame the flat list ``axes`` (9 per
+    joint, in ``quantum_mm``). Empty lists when the skeleton carries no uncertainty."""
+    unc = (sk.info.get("uncertainty") or {}).get("joints") or {}
+    names = list(sk.names)
+    joints, prior, rest = [], [], []
+    for name, u in unc.items():
+        if name not in names or 2.0 * max(u["sd_mm"]) < 0.5:
+            continue
+        joints.append(names.index(name))
+        prior.append(bool(u["set_by_prior"]))
+        rest.append(2.0 * np.asarray(u["sd_mm"])[:, None] * np.asarray(u["directions"]))  # (3 axes, 3)
+    if not joints:
+        return {"joints": [], "prior": [], "axes": []}
+    A = np.einsum("fjik,jak->fjai", rot[:, joints], np.array(rest))  # (n, J, 3 axes, 3)
+    return {"joints": joints, "prior": prior, "axes": _quantise(A.reshape(A.shape[0], -1, 3), np.zeros(3))}
 
 
 def _json_for_script(obj: Any) -> str:

@@ -26,8 +26,9 @@ from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb
 from ..solvers.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
+from ..solvers.uncertainty import skeleton_uncertainty
 
-VERSION = 25
+VERSION = 26
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,9 @@ class Params:
     """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
     that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move)."""
+    uncertainty: bool = True
+    """Every joint's uncertainty (:mod:`~mocapskel.solvers.uncertainty`) into ``info["uncertainty"]``;
+    it moves no joint."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -206,7 +210,7 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     if params.joint_model == "map":
         if params.refine_frames > 0:
             skel = _map_fit(joints, skel, rest, parent, parent_edge, order, params)
-        return _with_lengths(skel)
+        return _with_uncertainty(_with_lengths(skel), skel, params)
     if params.refine_frames > 0:
         if joints.alt_centres is None:
             skel = refine(skel, params, joints.centres)
@@ -260,13 +264,24 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
                 skel = replace(out, info=info)
             else:
                 skel = one[1]
+    refined = skel
     if params.mirror_pairs:
         skel = centre_mirrored_pairs(skel)
     if params.joint_depth and skel.pose_rot is not None:
         skel = deepen_joints(skel, params.hinge_ratio)
     if params.leaf_centre and skel.pose_rot is not None:
         skel = centre_leaf_hinges(skel, params.hinge_ratio)
-    return _with_lengths(skel)
+    return _with_uncertainty(_with_lengths(skel), refined, params)
+
+
+def _with_uncertainty(skel: Skeleton, refined: Skeleton, params: Params) -> Skeleton:
+    """``skel`` with every joint's uncertainty in ``info["uncertainty"]`` (``refined``: the refinement's
+    skeleton, whose poses it starts from)."""
+    if params.uncertainty:
+        got = skeleton_uncertainty(skel, refined)
+        if got is not None:
+            skel = replace(skel, info=dict(skel.info, uncertainty=got))
+    return skel
 
 
 def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, parent_edge: np.ndarray,
