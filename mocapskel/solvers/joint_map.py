@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..artifacts import Skeleton
+from ..model.tree import like_subtrees, subtree_shape
 from .calibrate import pick_frames, refine_skeleton
 from .deepen import deepen_joints
 from .motion import _centres_by_edges, solve
@@ -126,14 +127,38 @@ def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
     return out
 
 
+def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
+    """(x, y): segments of two like limbs (:func:`~mocapskel.model.tree.like_subtrees`: subtrees of the same
+    shape and marker counts) that match, segment for segment, their children taken in order of their
+    subtrees' shapes; each x's offset from its parent's origin is the like of y's (the first joints from
+    the common parent, then the limbs' bones)."""
+    parent = np.asarray(skel.parent)
+    count = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(parent))
+    out: list[tuple[int, int]] = []
+
+    def match(x: int, y: int) -> None:
+        out.append((x, y))
+        kx = sorted((int(k) for k in np.flatnonzero(parent == x)), key=lambda k: subtree_shape(parent, count, k))
+        ky = sorted((int(k) for k in np.flatnonzero(parent == y)), key=lambda k: subtree_shape(parent, count, k))
+        for u, v in zip(kx, ky):
+            match(u, v)
+
+    for _, a, b in like_subtrees(parent, count):
+        match(a, b)
+    return out
+
+
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
-               mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None) -> Skeleton:
+               mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
+               bone_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
     every start of a take) and the prior's sigmas. With ``rho`` (:func:`residual_correlation`), the
     refinement's n frames count as :func:`effective_frames` n_eff independent ones: the data term is
-    scaled by n_eff / n (the prior's weights by n / n_eff)."""
+    scaled by n_eff / n (the prior's weights by n / n_eff). With ``bone_sigma`` > 0, like limbs' bones
+    (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
+    length at the start: one more factor each."""
     pts = start.joints.topology.segments.markers.points
     vis = np.isfinite(pts).all(-1)
     use = pick_frames(vis, refine_frame_count(frames, len(start.names), pts.shape[0],
@@ -151,14 +176,23 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
     inflate = use.size / n_eff  # the noise variance per frame, as seen by the data term, times this
     w = np.where(np.isfinite(sig), inflate * sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
+    ties, tie_sig = [], []
+    if bone_sigma > 0:
+        for x, y in like_bone_pairs(start):
+            lx, ly = (float(np.linalg.norm(start.origin[k] - start.origin[start.parent[k]])) for k in (x, y))
+            sb = bone_sigma * 0.5 * (lx + ly)
+            if sb > 0:
+                ties.append((x, y, inflate * sn**2 / sb**2))
+                tie_sig.append(sb)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
-                          anchor=(centre.origin, centre.marker_local))
+                          anchor=(centre.origin, centre.marker_local), like_bones=ties)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
-    nlp = res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
+    nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
+           + float(np.sum(np.log(tie_sig))))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
-                       "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff,
+                       "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
                        "prior_scale": scale, "neg_log_posterior": nlp,
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}

@@ -119,6 +119,9 @@ class Params:
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
     correlation in time allows (:func:`~mocapskel.solvers.joint_map.effective_frames`: skin motion
     makes neighbouring frames' residuals alike)."""
+    bone_sigma: float = 0.0
+    """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
+    of their length (a Gaussian factor per pair; 0: no such factor)."""
 
 
 def choose_rest_frame(points: np.ndarray, joints: np.ndarray, group: np.ndarray, n_seg: int, search: float) -> int:
@@ -297,7 +300,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     def one(i: int):
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
-                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho)
+                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
+                         bone_sigma=params.bone_sigma)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
