@@ -15,13 +15,25 @@ hinge with a marker over its axis one limb half-width inside that marker along t
 (``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.deepen.deepen_joints`, a surface
 marker sitting outside the bone, as the prior's mean). The MAP minimises
 
-    sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
+    (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
+        [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2]
 
-over the refinement's frames (:func:`~mocapskel.solvers.calibrate.refine_skeleton` with
-``prior_weights`` = sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole fit, while
-the markers add a term in every frame: where the motion fixes a joint, the data win; along a
-direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
+over the refinement's n frames (:func:`~mocapskel.solvers.calibrate.refine_skeleton` with
+``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
+fit, while the markers add a term in every frame: where the motion fixes a joint, the data win; along
+a direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
 the markers alone, so that every start is scored by the same model.
+
+The data's weight. Skin slides with the joint angles, so a marker's residual in one frame is nearly
+its residual in the next: n frames are not n independent observations, and counted as such they
+make the data look sure along directions the motion does not fix (a knee along its axis) and the
+joints slide there into the skin motion. With ``data_weight="effective"`` the frames count as
+n_eff = n^2 / sum_ij rho(|t_i - t_j|) (:func:`effective_frames`), rho the correlation in time of the
+markers' residuals in their segments' frames, measured from the take (:func:`residual_correlation`);
+``"frames"`` keeps n_eff = n.
+
+Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
+differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
