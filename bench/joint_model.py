@@ -38,7 +38,8 @@ REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "
 
 #: each model variant's data term weight and prior mean (``rigid.Params.data_weight``, ``prior_mean``)
 WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepened", 0.0),
-           "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03)}
+           "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03),
+           "map-like": ("frames", "deepened", 0.03)}
 #: the variants measured (``--variants``; "rules" is the rules path)
 VARIANTS = ["rules", "map"]
 
@@ -227,7 +228,7 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=["rules", *WEIGHTS],
                     help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
                          "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
-                         "map-eff-like (effective frames, like limbs' bones within 3 %%)")
+                         "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs)")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
     a = ap.parse_args()
