@@ -36,14 +36,30 @@ REALDATA = REPO.parent / "shared" / "realdata"
 REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "ezc3d/Qualisys.c3d")
 
 
+#: each model variant's data term weight and prior mean (``rigid.Params.data_weight``, ``prior_mean``)
+WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepened", 0.0),
+           "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03),
+           "map-like": ("frames", "deepened", 0.03)}
+#: the variants measured (``--variants``; "rules" is the rules path)
+VARIANTS = ["rules", "map"]
+
+
 def _rigid(mode: str, scale: float):
     from mocapskel.stages import rigid
 
-    return rigid.Params(joint_model=mode, prior_scale=scale)
+    if mode == "rules":
+        return rigid.Params(joint_model="rules")
+    w, mean, bone = WEIGHTS[mode]
+    return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone)
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
-    return [("rules", "rules", 0.5)] + [(f"map {s:g}", "map", s) for s in scales]
+    return ([("rules", "rules", 0.5)] if "rules" in VARIANTS else []) + [
+        (f"{v} {s:g}", v, s) for v in VARIANTS if v != "rules" for s in scales]
+
+
+def _vargs() -> list[str]:
+    return ["--variants", *VARIANTS]
 
 
 def _true_topology(take, markers):
@@ -135,14 +151,16 @@ def _cell(r: dict, key: str) -> str:
     return "error" if "error" in r else f"{r[key]:.1f}"
 
 
-def generated_table(seeds, scales: list[float], cases=None) -> tuple[str, dict]:
+def generated_table(seeds, scales: list[float], cases=None, raw_path=None) -> tuple[str, dict]:
     cases = cases or [("realistic", m) for m in MOTIONS] + [("rom48", "rom")]
-    modes = [n for n, _, _ in _modes(scales)]
     rows, raw = [], {}
+    modes = [n for n, _, _ in _modes(scales)]
     for kind, motion in cases:
         for seed in seeds:
-            r = run_isolated("joint_model", "--case", kind, motion, str(seed), "--scales", *map(str, scales))
+            r = run_isolated("joint_model", "--case", kind, motion, str(seed), "--scales", *map(str, scales), *_vargs())
             raw[f"{kind} {motion} {seed}"] = r
+            if raw_path:  # kept as it grows: a long run stopped early keeps what it measured
+                Path(raw_path).write_text(json.dumps(raw, indent=1))
             for tree in ("true", "auto"):
                 t = r[tree]
                 if "error" in t:
@@ -207,7 +225,14 @@ def main() -> None:
     ap.add_argument("--real-only", action="store_true", help="the real takes only")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
     ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=["rules", *WEIGHTS],
+                    help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
+                         "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
+                         "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs)")
+    ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
+    ap.add_argument("--seeds", nargs="+", type=int, default=None)
     a = ap.parse_args()
+    VARIANTS[:] = a.variants
     if a.compact:
         print(compact(json.loads(Path(a.compact[0]).read_text()), float(a.compact[1])))
         return
@@ -227,8 +252,11 @@ def main() -> None:
 
 
 def generated(a) -> None:
-    seeds = TUNE if a.tune else TUNE + CHECK
-    text, raw = generated_table(seeds, a.scales)
+    seeds = a.seeds or (TUNE if a.tune else TUNE + CHECK)
+    cases = None
+    if a.motions:
+        cases = [("realistic", m) for m in a.motions if m != "rom48"] + ([("rom48", "rom")] if "rom48" in a.motions else [])
+    text, raw = generated_table(seeds, a.scales, cases, a.raw)
     if a.raw:
         Path(a.raw).write_text(json.dumps(raw, indent=1))
     print("Generated takes (cmu41 realistic: 600 frames, 120 Hz, 1 mm noise, skin motion; rom48: the active human "
@@ -243,7 +271,7 @@ def real(a) -> None:
     if (REALREF / "score.py").is_file():
         rows = []
         for name in sorted(p.name[: -len(".ref.npz")] for p in REALREF.glob("*.ref.npz")):
-            r = run_isolated("joint_model", "--real", name, "--scales", *map(str, a.scales))
+            r = run_isolated("joint_model", "--real", name, "--scales", *map(str, a.scales), *_vargs())
             row = [name]
             for m in r.values():
                 if "error" in m:
@@ -264,7 +292,7 @@ def real(a) -> None:
     for rel in REAL_TAKES:
         if not (REALDATA / rel).is_file():
             continue
-        r = run_isolated("joint_model", "--checks", rel, "--scales", *map(str, a.scales))
+        r = run_isolated("joint_model", "--checks", rel, "--scales", *map(str, a.scales), *_vargs())
         rows.append([rel] + [m.get("warnings", "error") for m in r.values()])
         print(f"  {rows[-1]}", file=sys.stderr)
     if rows:

@@ -364,6 +364,7 @@ def refine_skeleton(
     prior_joints: set | None = None,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
     prior_weights: np.ndarray | None = None,
+    like_bones: list[tuple[int, int, float]] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -395,6 +396,9 @@ def refine_skeleton(
     prior_weights : (S, 2) instead of ``joint_prior``: the weight (whole fit, not per frame) of the prior on
         child c's joint relative to its parent's marker centroid ([c, 0]) and its own ([c, 1]); a Gaussian
         of sigma (mm, per axis) against marker noise sigma_n weighs sigma_n^2 / sigma^2.
+    like_bones : (a, b, weight) for two child segments whose offsets from their parents' origins (their
+        parents' bones) should be as long as each other: ``weight`` (whole fit) x the squared difference of
+        their lengths, each length linearised along its direction at the start.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -431,6 +435,18 @@ def refine_skeleton(
         g0 = _pack(pr, d_a, a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
     h0 = Hh @ g0
+    # like bones: rows sqrt(w) (u_a . d_a - u_b . d_b), held to 0
+    trows = []
+    for a, b, w in like_bones or ():
+        if parent[a] < 0 or parent[b] < 0 or not w > 0:
+            continue
+        row = np.zeros(ng)
+        for c, sign in ((a, 1.0), (b, -1.0)):
+            n = float(np.linalg.norm(d[c]))
+            if n > 0:
+                row[pr.gi[c] : pr.gi[c] + 3] = sign * d[c] / n
+        trows.append(np.sqrt(w) * row)
+    T = np.array(trows).reshape(-1, ng)
 
     def total(p_, R_, d_, l_) -> float:
         c = pr.cost(p_, R_, d_, l_)
@@ -440,6 +456,9 @@ def refine_skeleton(
         if k_prior > 0 and A.shape[0]:
             r = A @ _pack(pr, d_, l_) - u0
             c += k_prior * float(r @ r)
+        if T.shape[0]:
+            r = T @ _pack(pr, d_, l_)
+            c += float(r @ r)
         return c
 
     c0 = total(p, R, d, l)
@@ -510,6 +529,9 @@ def refine_skeleton(
                     if k_prior > 0 and A.shape[0]:
                         Hgg += k_prior * (A.T @ A)
                         bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
+                    if T.shape[0]:
+                        Hgg += T.T @ T
+                        bg += T.T @ (T @ _pack(pr, d, l))
                     Hgg[fix_g, :] = 0.0
                     Hgg[:, fix_g] = 0.0
                     Hgg[fix_g, fix_g] = 1.0

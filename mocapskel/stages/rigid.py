@@ -20,7 +20,7 @@ from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
 from ..solvers.deepen import deepen_joints
 from ..solvers.leaf_hinges import centre_leaf_hinges
-from ..solvers.joint_map import map_refine, noise_sigma
+from ..solvers.joint_map import map_refine, noise_sigma, residual_correlation
 from ..solvers.mirror import centre_mirrored_pairs
 from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
 from ..solvers.refinement import _refine_once, refine
@@ -115,6 +115,14 @@ class Params:
     """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
     that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move)."""
+    data_weight: str = "frames"
+    """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
+    each an independent observation; ``"effective"``, as many independent frames as their residuals'
+    correlation in time allows (:func:`~mocapskel.solvers.joint_map.effective_frames`: skin motion
+    makes neighbouring frames' residuals alike)."""
+    bone_sigma: float = 0.0
+    """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
+    of their length (a Gaussian factor per pair; 0: no such factor)."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -300,10 +308,15 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     noise = noise_sigma(pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)],
                         np.asarray(skel.marker_segment))
 
+    if params.data_weight not in ("frames", "effective"):
+        raise ValueError(f"data_weight must be 'frames' or 'effective', not {params.data_weight!r}")
+    rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
+
     def one(i: int):
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
-                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio)
+                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
+                         bone_sigma=params.bone_sigma)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
