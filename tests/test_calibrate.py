@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
-from mocapskel.solvers.calibrate import pick_frames, refine_skeleton, track
+from mocapskel.solvers.calibrate import pick_frames, refine_skeleton
+from mocapskel.solvers.ik_track import track
 from mocapskel.solvers import deepen, hinges, joint_moves, leaf_hinges, mirror, motion, plausible, refinement, rest_pose
 from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid

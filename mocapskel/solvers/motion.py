@@ -7,7 +7,7 @@ import numpy as np
 from ..artifacts import Motion, Skeleton
 from ..model.measures import frames_text
 from ..errors import DataError
-from .calibrate import track
+from .ik_track import track
 from .ik_segment_poses import segment_poses
 from .ik_solve import solve_ik
 from .ik_unflip import unflip
@@ -94,7 +94,7 @@ def solve(
     nearest solved pose. ``tol`` (mm) is the solver's convergence tolerance.
     key_poses : (frames (K,), rot (K, S, 3, 3), root_pos (K, 3)) poses known at
     some frames: IK is then solved coarse to fine in time from them
-    (:func:`~mocapskel.solvers.calibrate.track`) and ``centres`` is not used.
+    (:func:`~mocapskel.solvers.ik_track.track`) and ``centres`` is not used.
     version : the IK stage's ``VERSION``, noted in the motion's info.
     """
     if not np.isfinite(points).any():

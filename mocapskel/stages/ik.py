@@ -14,7 +14,7 @@ of its markers is fixed only through its joints, and a start from the joints
 stage's centres (tens of mm off for such segments) leads IK to the wrong
 twist in many frames. Such a skeleton's refined poses (the rigid stage's
 ``pose_frames``) are then the start instead: IK is solved coarse to fine in
-time from them (:func:`~mocapskel.solvers.calibrate.track`), each frame
+time from them (:func:`~mocapskel.solvers.ik_track.track`), each frame
 started and held by the slerp of the joints' rotations of the frames already
 solved around it.
 """
