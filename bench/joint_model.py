@@ -62,16 +62,6 @@ def _vargs() -> list[str]:
     return ["--variants", *VARIANTS]
 
 
-def _true_topology(take, markers):
-    from mocapskel.artifacts import Segments, Topology
-
-    t = take.truth
-    S = len(t.segment_names)
-    seg = Segments(markers=markers, group=np.asarray(t.marker_segment), dist_std=np.zeros((0, 0)), eigvals=np.zeros(0))
-    edges = np.stack([t.parent[t.joint_child], t.joint_child], axis=1)
-    return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)
-
-
 def generated_case(kind: str, motion: str, seed: int, scales: list[float]) -> dict:
     """{tree ("true" / "auto"): {mode: {"mean": mm, "worst": mm, "matched": joints}}} for one generated take."""
     from mocapskel import evaluate, pipeline
@@ -86,7 +76,7 @@ def generated_case(kind: str, motion: str, seed: int, scales: list[float]) -> di
     out: dict = {}
     for tree in ("true", "auto"):
         try:
-            src = _true_topology(take, clean) if tree == "true" else pipeline.run_until(clean, "topology").artifact
+            src = evaluate.true_topology(take.truth, clean) if tree == "true" else pipeline.run_until(clean, "topology").artifact
             joints = pipeline.run_until(src, "joints").artifact
         except MocapskelError as e:
             out[tree] = {"error": str(e).splitlines()[0][:80]}
@@ -105,22 +95,30 @@ def generated_case(kind: str, motion: str, seed: int, scales: list[float]) -> di
     return out
 
 
-def real_case(name: str, scales: list[float]) -> dict:
-    """{mode: score.py's fields} for one reference take (fitted in this process, scored by score.py)."""
+def _fits(path: Path, scales: list[float]):
+    """(label, the fit's result or {"error": message}) for every joint model, ``path`` fitted in this process."""
     from mocapskel import pipeline
     from mocapskel.errors import MocapskelError
-    from mocapskel.io.bvh import write_bvh
 
-    out = {}
     for label, mode, s in _modes(scales):
         params = pipeline.make_params(up="z", units="mm")
         params["rigid"] = _rigid(mode, s)
+        try:
+            yield label, pipeline.fit(path, params)
+        except MocapskelError as e:
+            yield label, {"error": str(e).splitlines()[0][:80]}
+
+
+def real_case(name: str, scales: list[float]) -> dict:
+    """{mode: score.py's fields} for one reference take (fitted in this process, scored by score.py)."""
+    from mocapskel.io.bvh import write_bvh
+
+    out = {}
+    for label, res in _fits(REALREF / f"{name}.c3d", scales):
+        if isinstance(res, dict):
+            out[label] = res
+            continue
         with tempfile.TemporaryDirectory() as d:
-            try:
-                res = pipeline.fit(REALREF / f"{name}.c3d", params)
-            except MocapskelError as e:
-                out[label] = {"error": str(e).splitlines()[0][:80]}
-                continue
             bvh = Path(d) / f"{name}.bvh"
             b = res.bvh
             write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
@@ -131,20 +129,9 @@ def real_case(name: str, scales: list[float]) -> dict:
 
 def checks_case(rel: str, scales: list[float]) -> dict:
     """{mode: the number of output-check warnings} for one real take."""
-    from mocapskel import pipeline
-    from mocapskel.errors import MocapskelError
-
-    out = {}
-    for label, mode, s in _modes(scales):
-        params = pipeline.make_params(up="z", units="mm")
-        params["rigid"] = _rigid(mode, s)
-        try:
-            res = pipeline.fit(REALDATA / rel, params)
-        except MocapskelError as e:
-            out[label] = {"error": str(e).splitlines()[0][:80]}
-            continue
-        out[label] = {"warnings": sum(1 for w in res.report["warnings"] if w.startswith("check "))}
-    return out
+    return {label: res if isinstance(res, dict) else
+            {"warnings": sum(1 for w in res.report["warnings"] if w.startswith("check "))}
+            for label, res in _fits(REALDATA / rel, scales)}
 
 
 def _cell(r: dict, key: str) -> str:

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .artifacts import Joints, Motion, Skeleton
+from .artifacts import Joints, Markers, Motion, Segments, Skeleton, Topology
 from .synth.truth import Truth
 
 
@@ -142,3 +142,13 @@ def _true_segment_length(truth: Truth, t: int) -> float:
     if len(js) != 2:
         return float("nan")
     return float(np.nanmean(np.linalg.norm(truth.joints[:, js[0]] - truth.joints[:, js[1]], axis=1)))
+
+
+def true_topology(truth: Truth, markers: Markers) -> Topology:
+    """The true groups and tree of a generated take as a topology artifact, for the stages after it
+    (the joints, rigid and IK stages measured with the grouping and the tree handed in)."""
+    S = len(truth.segment_names)
+    seg = Segments(markers=markers, group=np.asarray(truth.marker_segment), dist_std=np.zeros((0, 0)),
+                   eigvals=np.zeros(0))
+    edges = np.stack([truth.parent[truth.joint_child], truth.joint_child], axis=1)
+    return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)

@@ -238,29 +238,18 @@ def test_active_rom_ball_joints_by_score_within_target():
 # --------------------------------------------------------------------------- the joints stage on long takes
 
 
-def _stage_topology(take, markers):
-    """The take's true groups and tree as the joints stage's input."""
-    from mocapskel.artifacts import Segments, Topology
-
-    t = take.truth
-    S = len(t.segment_names)
-    seg = Segments(markers=markers, group=np.asarray(t.marker_segment), dist_std=np.zeros((0, 0)), eigvals=np.zeros(0))
-    edges = np.stack([t.parent[t.joint_child], t.joint_child], axis=1)
-    return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)
-
-
 def test_joints_stage_long_take_equals_the_frame_by_frame_computation():
     """The joints stage (fast poses, SCoRE sums over every frame, diagnostics on a spread subsample)
     gives the centres of the plain computation (kabsch poses, SCoRE, each side's image where only one
     segment is seen) to rounding; its diagnostics are those of the whole take within a few percent."""
-    from mocapskel import pipeline
+    from mocapskel import evaluate, pipeline
     from mocapskel.solvers.score import score
     from mocapskel.stages import joints as jstage
     from mocapskel.synth.presets import active_rom, make
 
     take = make(active_rom(2, frames=6000))
     clean = pipeline.run_until(take.markers, "clean").artifact
-    topo = _stage_topology(take, clean)
+    topo = evaluate.true_topology(take.truth, clean)
     full = jstage.run(topo, jstage.Params(diag_frames=6000))
     sub = jstage.run(topo, jstage.Params(diag_frames=2000))
     np.testing.assert_array_equal(sub.centres, full.centres)
