@@ -1,4 +1,8 @@
-"""Run every benchmark and rewrite BENCHMARKS.md (`make bench`)."""
+"""Run every benchmark and rewrite BENCHMARKS.md (`make bench`).
+
+The sections of the benchmarks run here are written anew; every other section of BENCHMARKS.md (those of benchmarks
+too slow for `make bench`, run by hand with the command they name: the joint models, the joints' uncertainty) is kept
+as it is, after them."""
 from __future__ import annotations
 
 import datetime
@@ -23,7 +27,19 @@ BENCHES = [
 ]
 
 
+def kept_sections(text: str, titles: set[str]) -> list[str]:
+    """The ``## `` sections of ``text`` whose titles are not in ``titles``, each whole, in order."""
+    out: list[str] = []
+    for block in ("\n" + text).split("\n## ")[1:]:
+        title = block.split("\n", 1)[0].strip()
+        if title not in titles:
+            out.append("## " + block.rstrip("\n") + "\n")
+    return out
+
+
 def main() -> None:
+    path = REPO / "BENCHMARKS.md"
+    kept = kept_sections(path.read_text(), {t for t, _ in BENCHES}) if path.exists() else []
     parts = [
         "# Benchmarks\n",
         f"Machine: {machine()}.  ",
@@ -35,7 +51,8 @@ def main() -> None:
         out = subprocess.run([sys.executable, "-m", module], cwd=REPO, capture_output=True, text=True)
         parts.append(f"## {title}\n\n`python -m {module}`\n")
         parts.append(out.stdout if out.returncode == 0 else f"FAILED:\n```\n{out.stderr[-3000:]}\n```\n")
-    (REPO / "BENCHMARKS.md").write_text("\n".join(parts) + "\n")
+    parts.extend(kept)
+    path.write_text("\n".join(parts) + "\n")
     print("wrote BENCHMARKS.md", file=sys.stderr)
 
 
