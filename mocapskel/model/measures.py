@@ -24,17 +24,16 @@ def visible(points: np.ndarray) -> np.ndarray:
     return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
 
 
-def extent_frames(F: int, n_frames: int = 400) -> np.ndarray:
-    """The frames :func:`marker_extent` reads of a take of ``F`` frames: up to ``n_frames``, evenly spread.
-    ``marker_extent(points)`` is ``marker_extent(points[extent_frames(len(points))])``: a caller can
-    gather those frames alone instead of a whole long take's columns."""
-    return np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
-
-
-def marker_extent(points: np.ndarray, n_frames: int = 400) -> float:
+def marker_extent(points: np.ndarray, n_frames: int = 400, columns: np.ndarray | None = None) -> float:
     """The subject's size: median over (up to ``n_frames`` evenly spread) frames of the
-    largest distance between two markers seen in that frame (mm; NaN if no frame shows two)."""
-    idx = extent_frames(points.shape[0], n_frames)
+    largest distance between two markers seen in that frame (mm; NaN if no frame shows two).
+    ``columns``: only those markers of ``points`` (F, M, 3) (indices or a mask); only the frames read are
+    gathered."""
+    F = points.shape[0]
+    idx = np.unique(np.linspace(0, F - 1, min(F, n_frames)).astype(np.int64)) if F else np.zeros(0, dtype=np.int64)
+    if columns is not None:
+        points = points[idx][:, columns]
+        idx = np.arange(idx.size)
     d = []
     for f in idx:  # a few hundred frames, each a small pairwise matrix
         p = points[f]

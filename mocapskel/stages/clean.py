@@ -65,15 +65,6 @@ _BLOCK_SAMPLES = 1 << 20
 _WINDOW_CHUNK = 100_000
 
 
-def _visible(points: np.ndarray) -> np.ndarray:
-    """(F, M) bool: samples whose three coordinates are all finite.
-
-    One pass per coordinate: a reduction over a last axis of length 3
-    (``np.isfinite(points).all(axis=2)``) is several times slower.
-    """
-    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
-
-
 def _window_any(mask: np.ndarray, before: int, after: int) -> np.ndarray:
     """Per column, whether any of ``mask[f - before : f + after + 1]`` is True (outside the array: False).
 
@@ -142,7 +133,7 @@ def find_jumps(points: np.ndarray, rate: float, params: Params = Params()) -> np
     -------
     (F, M) bool ndarray, True where a sample is a jump.
     """
-    return _find_jumps(points, _visible(points), rate, params)
+    return _find_jumps(points, visible(points), rate, params)
 
 
 def _find_jumps(points: np.ndarray, vis: np.ndarray, rate: float, params: Params) -> np.ndarray:
@@ -314,7 +305,7 @@ def run(markers: Markers, params: Params = Params(), *, consume: bool = False) -
     what keeps a long passive take (hundreds of labels) within memory.
     """
     F, M, _ = markers.points.shape
-    vis0 = _visible(markers.points)
+    vis0 = visible(markers.points)
     # the jump test reads visible samples only and takes any non-finite step as large,
     # so the points need not have their gaps set to NaN before it
     jumps = _find_jumps(markers.points, vis0, markers.rate, params)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..artifacts import Joints, Topology
-from ..model.measures import extent_frames, marker_extent
+from ..model.measures import marker_extent
 from ..errors import DataError
 from ..model.leave_out import leave_out
 from ..model.naming import segment_names
@@ -303,7 +303,7 @@ def hold_far(joints: Joints, far: float, diag: np.ndarray | slice) -> Joints:
     edges = joints.topology.edges
     centres = joints.centres.copy()
     # the subject's extent on the frames it reads (of the segments' markers, in segment order)
-    extent = marker_extent(np.take(pts[extent_frames(pts.shape[0])], np.concatenate(groups.members), axis=1))
+    extent = marker_extent(pts, columns=np.concatenate(groups.members))
     held = hold_far_joints(centres, groups, edges, far, diag, extent)
     alt = None
     if joints.alt_centres is not None:  # the rigid stage's other start: its joints ran off as far

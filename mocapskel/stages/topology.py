@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Segments, Topology
-from ..model.measures import extent_frames, marker_extent
+from ..model.measures import marker_extent
+from ..model.measures import visible as _seen
 from ..errors import DataError
 from ..solvers.parallel import n_threads, run_forked
 from ..solvers.joint_cost import balanced_alpha, distance_penalty
@@ -70,11 +71,6 @@ class Params:
     third point (see :func:`_augmented_costs`)."""
 
 
-def _visible(points: np.ndarray) -> np.ndarray:
-    """(F, M) bool: all three coordinates finite (one pass per coordinate, not a reduction over the last axis)."""
-    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1]) & np.isfinite(points[..., 2])
-
-
 def subsample(points: np.ndarray, n: int, *, visible: np.ndarray | None = None) -> np.ndarray:
     """Indices of ``n`` frames spread evenly over the take, each the best-visible in its slice.
 
@@ -83,7 +79,7 @@ def subsample(points: np.ndarray, n: int, *, visible: np.ndarray | None = None) 
     F = points.shape[0]
     if F <= n:
         return np.arange(F)
-    vis = (_visible(points) if visible is None else visible).sum(1)
+    vis = (_seen(points) if visible is None else visible).sum(1)
     edges = np.linspace(0, F, n + 1).astype(int)
     return np.array([a + int(np.argmax(vis[a:b])) for a, b in zip(edges[:-1], edges[1:]) if b > a])
 
@@ -201,7 +197,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     if S < 2:
         raise DataError("fewer than two segments — nothing to connect", segments.markers.source or None)
     alpha = params.alpha if params.alpha is not None else distance_penalty(segments.info, params.alpha_k)
-    vis = _visible(pts)
+    vis = _seen(pts)
     frames = subsample(pts, params.n_frames, visible=vis)
     # markers of each segment seen in each frame: one product with the (M, S) membership
     member = np.zeros((pts.shape[1], S), dtype=np.float32)
@@ -216,7 +212,7 @@ def run(segments: Segments, params: Params = Params()) -> Topology:
     sub = pts[frames[np.unique(np.linspace(0, frames.size - 1, k).round().astype(int))]]
     bases = [mtb_basis(sub[:, members[s]]) if members[s].size >= 3 else None for s in range(S)]
     elsewhere = np.zeros((S, S), dtype=bool)
-    far = params.far * marker_extent(pts[extent_frames(pts.shape[0])][:, inseg])  # the frames it reads alone
+    far = params.far * marker_extent(pts, columns=inseg)
     on_sub: dict[tuple[int, int], np.ndarray] = {}  # (a, b), a < b: the joint on the common subsample
     def cost_pair(ab: tuple[int, int]):
         a, b = ab
