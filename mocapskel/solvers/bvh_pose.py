@@ -443,7 +443,7 @@ def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndar
     order :func:`choose_rotation_order` takes. Else up to ``n_rests`` of
     ``frames``, spread evenly over them, are tried ``batch`` at a time (each
     batch spread over the take), in every order
-    (:func:`~mocapskel.solvers.euler_continuity.rest_spike_counts`), on at most
+    (:meth:`~mocapskel.solvers.euler_continuity.RestSteps.count`), on at most
     ``n_steps`` frame steps spread over the take; the ``n_final`` best pairs of
     a batch are counted on every step (unless their sampled steps, a part of all,
     already spike as often as the best so far), and the search stops at the first

@@ -14,10 +14,26 @@ import numpy as np
 
 from .rotations import ORDERS, _parse_order, matrix_to_euler
 
-__all__ = ["rotation_steps", "channel_steps", "euler_spikes", "order_spike_counts", "step_spike_counts", "RestSteps", "rest_spike_counts"]
+__all__ = ["rotation_steps", "channel_steps", "euler_spikes", "order_spike_counts", "step_spike_counts", "RestSteps"]
 
 #: Degrees a channel may step beyond the rotation's own turn (the BVH rule).
 SPIKE_MARGIN_DEG = 5.0
+
+
+def _turn(tr: np.ndarray) -> np.ndarray:
+    """The turn (radians) of rotations whose relative rotation has trace ``tr``: from
+    ``3 - tr = 4 sin^2(theta / 2)``, accurate for small turns where ``arccos((tr - 1) / 2)`` loses half
+    the digits."""
+    return 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))
+
+
+def _least_step(x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """(N,) the largest channel step from Euler angles ``x0`` (N, 3) to the nearer of the two Euler
+    solutions of the same rotations as ``x1`` ((a, b, c) and (a + 180, 180 - b, c + 180)), modulo 360:
+    the step the writer's continuous unwrapping makes."""
+    y1 = x1 + np.array([180.0, 0.0, 180.0])
+    y1[:, 1] = 180.0 - x1[:, 1]
+    return np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
 
 
 def rotation_steps(R: np.ndarray) -> np.ndarray:
@@ -34,7 +50,7 @@ def rotation_steps(R: np.ndarray) -> np.ndarray:
     """
     R = np.asarray(R, dtype=np.float64)
     tr = np.einsum("f...ij,f...ij->f...", R[1:], R[:-1])
-    return np.degrees(2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0))))
+    return np.degrees(_turn(tr))
 
 
 def channel_steps(angles: np.ndarray) -> np.ndarray:
@@ -114,7 +130,7 @@ def step_spike_counts(R0: np.ndarray, R1: np.ndarray, margin_deg: float = SPIKE_
     if R0.size == 0:
         return out
     tr = np.einsum("n...ij,n...ij->n...", R0, R1)
-    th = 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))  # the turn, as rotation_steps
+    th = _turn(tr)
     cos_t, sin_t = np.cos(th), np.sin(th)
     for n, order in enumerate(orders):
         i, _, k, _ = _parse_order(order)
@@ -124,11 +140,7 @@ def step_spike_counts(R0: np.ndarray, R1: np.ndarray, margin_deg: float = SPIKE_
         cand = th * (1.0 - cb) > np.radians(margin_deg) * cb
         if not cand.any():
             continue
-        x0 = matrix_to_euler(R0[cand], order)
-        x1 = matrix_to_euler(R1[cand], order)
-        y1 = x1 + np.array([180.0, 0.0, 180.0])
-        y1[:, 1] = 180.0 - x1[:, 1]
-        step = np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
+        step = _least_step(matrix_to_euler(R0[cand], order), matrix_to_euler(R1[cand], order))
         out[n] = int(np.count_nonzero(step > np.degrees(th[cand]) + margin_deg))
     return out
 
@@ -172,7 +184,7 @@ class RestSteps:
         A[:, N:] = R1.reshape(N, S, 9).transpose(1, 0, 2)
         self.A, self.N, self.S = A, N, S
         tr = np.einsum("snx,snx->sn", A[:, :N], A[:, N:])
-        self.th = 2.0 * np.arcsin(np.sqrt(np.clip((3.0 - tr) / 4.0, 0.0, 1.0)))  # (S, N), the same for every rest
+        self.th = _turn(tr)  # (S, N), the same for every rest
         # the bound of step_spike_counts as a floor on |sin b|: a step can spike only where
         # |b| > arccos(theta / (theta + margin)) - theta (everywhere when that is negative)
         lim = np.arccos(self.th / (self.th + np.radians(margin_deg))) - self.th
@@ -212,18 +224,9 @@ class RestSteps:
             if ss.size == 0:
                 continue
             P, C = Qp[kk, ss], np.swapaxes(Q[kk, ss], -1, -2)
-            x0 = matrix_to_euler(P @ self.A[ss, nn].reshape(-1, 3, 3) @ C, order)
-            x1 = matrix_to_euler(P @ self.A[ss, nn + N].reshape(-1, 3, 3) @ C, order)
-            y1 = x1 + np.array([180.0, 0.0, 180.0])
-            y1[:, 1] = 180.0 - x1[:, 1]
-            step = np.minimum(channel_steps(np.stack([x0, x1])), channel_steps(np.stack([x0, y1])))[0]
+            step = _least_step(matrix_to_euler(P @ self.A[ss, nn].reshape(-1, 3, 3) @ C, order),
+                               matrix_to_euler(P @ self.A[ss, nn + N].reshape(-1, 3, 3) @ C, order))
             bad = step > np.degrees(self.th[ss, nn]) + self.margin_deg
             spikes[:, n] = np.bincount(kk[bad], minlength=K)
         return spikes, near
 
-
-def rest_spike_counts(local: np.ndarray, parent: np.ndarray, Q: np.ndarray, steps: np.ndarray | None = None,
-                      margin_deg: float = SPIKE_MARGIN_DEG, orders: tuple[str, ...] = ORDERS) -> tuple[np.ndarray, np.ndarray]:
-    """Euler spikes of a skeleton's motion with each of K other rest poses ``Q`` (K, S, 3, 3), in each
-    order: ``RestSteps(local, parent, steps, margin_deg).count(Q, orders)`` (see :class:`RestSteps`)."""
-    return RestSteps(local, parent, steps, margin_deg).count(Q, orders)
