@@ -49,13 +49,16 @@ markers), the turn a segment shows best.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 
-from .calibrate import _Problem
+from .calibrate import _exp, _hat, _Problem
+from .joint_moves import _repose
 from .parallel import run_blocks
+from .rotations import matrix_to_rotvec
 
 __all__ = ["JointUncertainty", "joint_uncertainty", "segment_sizes", "PRIOR_SCALE", "SET_BY_PRIOR"]
 
@@ -156,21 +159,17 @@ def _joint_operator(pr: _Problem, local: np.ndarray, c: int) -> tuple[np.ndarray
     r = L - cbar
     # the markers' small turn w moves marker m by w x r_m = -hat(r_m) w
     B = np.zeros((3 * len(ms), 3))
-    B[:, :] = -np.concatenate([_hat3(x) for x in r])
+    B[:, :] = -_hat(r).reshape(-1, 3)
     sv = np.linalg.svd(B, compute_uv=False) if len(ms) > 1 else np.zeros(3)
     rank = int((sv > _LINE_RCOND * max(sv[0], 1e-300)).sum()) if len(ms) > 1 else 0
     Bp = np.linalg.pinv(B, rcond=_LINE_RCOND) if len(ms) > 1 else np.zeros((3, 3 * len(ms)))
     # the joint sits at the segment's origin (0): relative to the markers' frame it moves by
     # -t - w x (0 - cbar) = -t - hat(cbar) w, with t their mean move and w = B^+ (their moves)
     T = np.tile(np.eye(3), (1, len(ms))) / len(ms)
-    J = -T - _hat3(cbar) @ Bp
+    J = -T - _hat(cbar) @ Bp
     cols = np.concatenate([np.arange(pr.gl[m], pr.gl[m] + 3) for m in ms])
     A[:, cols] = J
     return A, (3 if rank >= 3 else len(ms) if len(ms) < 3 else 2)
-
-
-def _hat3(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _gauge_fixed(pr: _Problem) -> np.ndarray:
@@ -282,8 +281,6 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
 
     Returns its mean (k, k) and, per direction, the sum over frames of each frame's part squared,
     averaged over the draws (k,): how unevenly the frames share it (its spread, below)."""
-    from .calibrate import _exp
-
     S = R.shape[1]
     k = V.shape[1]
 
@@ -433,8 +430,6 @@ def _axes(pr: _Problem, R: np.ndarray, l: np.ndarray, kids: np.ndarray, free: np
     """Per joint, the main axis of its relative rotations over the frames (the right singular vector
     of their rotation vectors of the largest singular value), and the axis across both ``free`` (its
     least fixed direction) and the child's bone, about which a turn would fix it."""
-    from .rotations import matrix_to_rotvec
-
     K = kids.size
     rel = np.swapaxes(R[:, pr.parent[kids]], -1, -2) @ R[:, kids]  # (F, K, 3, 3)
     rv = matrix_to_rotvec(rel.reshape(-1, 3, 3)).reshape(-1, K, 3)
@@ -471,8 +466,6 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
     rest frame; ``lacks_rotation_about`` None unless set by the prior).
     """
-    import time
-
     t = time.perf_counter()
     if skel.pose_rot is None or skel.pose_frames is None or skel.joints is None:
         return None
@@ -480,8 +473,6 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     rot, root = skel.pose_rot, skel.pose_root
     if refined is not None and not (np.array_equal(skel.origin, refined.origin)
                                     and np.array_equal(skel.marker_local, refined.marker_local, equal_nan=True)):
-        from .joint_moves import _repose
-
         res = _repose(skel, skel.origin, skel.marker_local, pts)
         rot, root = res.rot, res.root_pos
     ref = int(np.searchsorted(skel.pose_frames, skel.rest_frame))
@@ -493,7 +484,7 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
         return None
     joints = {}
     for k, c in enumerate(u.kids.tolist()):
-        prior_set = bool((u.prior_share[k] > SET_BY_PRIOR).any())
+        prior_set = bool(u.set_by_prior[k])
         joints[skel.names[c]] = {
             "sd_mm": [round(float(x), 3) for x in u.sd[k]],
             "directions": np.round(u.directions[k], 4).tolist(),
