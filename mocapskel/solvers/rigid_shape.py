@@ -370,11 +370,7 @@ def procrustes_shape(
         ref_frame %= F
 
     def solvable(f: int) -> bool:
-        pts = obs[f][vis[f]]
-        if len(pts) < 3:
-            return False
-        lam = np.linalg.eigvalsh(np.cov(pts.T, bias=True))
-        return bool(lam[2] > 0 and lam[1] > collinear_tol**2 * lam[2])
+        return bool(_solvable_frames(obs[f : f + 1], vis[f : f + 1], collinear_tol)[0])
 
     if ref_frame is not None and solvable(ref_frame):
         start = ref_frame
@@ -382,12 +378,11 @@ def procrustes_shape(
         start = best
     else:
         # that frame's points lie in one line or on one spot (two labels on one point, a body seen
-        # edge-on): start from the solvable frame with the most visible points instead
+        # edge-on): start from the solvable frame with the most visible points instead (the first of them)
         cand = np.flatnonzero(_solvable_frames(obs, vis, collinear_tol))
-        cand = cand[np.argsort(-n_vis[cand], kind="stable")]
-        start = next((int(f) for f in cand if solvable(int(f))), None)
-        if start is None:
+        if not cand.size:
             return (np.full((P, 3), np.nan), np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan), np.full(F, np.nan))
+        start = int(cand[np.argmax(n_vis[cand])])
 
     shape = np.where(vis[start][:, None], obs[start], np.nan)
     for _ in range(max(int(iters), 1)):
@@ -421,8 +416,9 @@ def procrustes_shape(
 
 
 def _solvable_frames(obs: np.ndarray, vis: np.ndarray, collinear_tol: float) -> np.ndarray:
-    """(F,) whether each frame's visible points of ``obs`` (F, P, 3) can be aligned: three or more,
-    not collinear (the test of :func:`procrustes_shape`, for all frames at once)."""
+    """(F,) whether each frame's visible points of ``obs`` (F, P, 3) can be aligned: three or more, not in
+    one line nor on one spot (the second eigenvalue of their scatter above ``collinear_tol**2`` times the
+    largest); all frames at once."""
     w = vis.astype(float)
     n = np.maximum(w.sum(1), 1.0)
     x = np.where(vis[..., None], obs, 0.0)

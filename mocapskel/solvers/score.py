@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rigid_shape import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, shape_poses
+from .rigid_shape import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, _solvable_frames, shape_poses
 
 __all__ = ["ScoreFit", "SaraFit", "score", "score_hinge", "sara", "score_from_markers"]
 
@@ -586,21 +586,13 @@ def group_pose(P: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.nda
     first, seen = -1, False
     for lo in range(0, F, 1024):  # the first complete frame out of line, usually among the first few
         B = P[lo : lo + 1024]
-        complete = np.flatnonzero(np.isfinite(np.einsum("fki->f", B)))
-        if complete.size:
-            if not seen:  # the first complete frame alone first: it is nearly always out of line
-                seen = True
-                c0 = B[complete[0]] - B[complete[0]].mean(0)
-                lam = np.linalg.eigvalsh(c0.T @ c0)
-                if lam[2] > 0 and lam[1] > COLLINEAR_TOL**2 * lam[2]:
-                    first = lo + int(complete[0])
-                    break
-            X = B[complete] - B[complete].mean(1, keepdims=True)
-            lam = np.linalg.eigvalsh(np.swapaxes(X, 1, 2) @ X)
-            good = (lam[:, 2] > 0) & (lam[:, 1] > COLLINEAR_TOL**2 * lam[:, 2])
-            if good.any():
-                first = lo + int(complete[np.argmax(good)])
-                break
+        vis = np.isfinite(B).all(-1)
+        complete = vis.all(1)
+        seen = seen or bool(complete.any())
+        good = complete & _solvable_frames(B, vis, COLLINEAR_TOL)
+        if good.any():
+            first = lo + int(np.argmax(good))
+            break
     if not seen:
         return f"group {name}: no frame where all its {K} markers are seen (needed for the reference shape)"
     if first < 0:
