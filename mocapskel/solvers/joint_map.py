@@ -47,10 +47,10 @@ import numpy as np
 
 from ..artifacts import Skeleton
 from ..model.tree import like_subtrees, subtree_shape
-from .calibrate import pick_frames, refine_skeleton
+from .calibrate import refine_skeleton
 from .deepen import deepen_joints
 from .motion import _centres_by_edges, solve
-from .refinement import refine_frame_count
+from .refinement import refinement_frames
 from .rest_pose import _rest_markers
 from .rigid_shape import procrustes_shape
 
@@ -172,9 +172,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
     length at the start: one more factor each."""
     pts = start.joints.topology.segments.markers.points
-    vis = np.isfinite(pts).all(-1)
-    use = pick_frames(vis, refine_frame_count(frames, len(start.names), pts.shape[0],
-                                              int((start.marker_segment >= 0).sum())), must=start.rest_frame)
+    use = refinement_frames(start, frames)
     if use.size < 10:
         return start
     ref = int(np.searchsorted(use, start.rest_frame))

@@ -78,6 +78,14 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
     return min(out, frames)
 
 
+def refinement_frames(skel: Skeleton, frames: int) -> np.ndarray:
+    """The frames a refinement of ``skel`` fits (:func:`~mocapskel.solvers.calibrate.pick_frames`, as many as
+    :func:`refine_frame_count` allows for ``frames``), its rest frame among them."""
+    pts = skel.joints.topology.segments.markers.points
+    return pick_frames(visible(pts), refine_frame_count(frames, len(skel.names), pts.shape[0],
+                                                        int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
+
+
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None,
            hold: dict[int, np.ndarray] | None = None) -> Skeleton:
     """:func:`refine_once` without the joint prior; again with it when a joint then sits implausibly far
@@ -224,9 +232,7 @@ def _refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, pri
     refinement of ``anchor`` returned them): that IK is not solved again.
     """
     pts = skel.joints.topology.segments.markers.points
-    vis = visible(pts)
-    use = pick_frames(vis, refine_frame_count(params.refine_frames, len(skel.names), pts.shape[0],
-                                              int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
+    use = refinement_frames(skel, params.refine_frames)
     if use.size < 10:
         return skel, None
     ref = int(np.searchsorted(use, skel.rest_frame))

@@ -207,6 +207,8 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     fitted is left out (see :func:`without_unfittable`), and the rest fitted."""
     if params.joint_model not in ("rules", "map"):
         raise ValueError(f"joint_model must be 'rules' or 'map', not {params.joint_model!r}")
+    if params.data_weight not in ("frames", "effective"):
+        raise ValueError(f"data_weight must be 'frames' or 'effective', not {params.data_weight!r}")
     while True:
         parent, parent_edge, order = _tree(joints)
         rest = _rest(joints, params)
@@ -308,8 +310,6 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     noise = noise_sigma(pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)],
                         np.asarray(skel.marker_segment))
 
-    if params.data_weight not in ("frames", "effective"):
-        raise ValueError(f"data_weight must be 'frames' or 'effective', not {params.data_weight!r}")
     rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
 
     def one(i: int):
