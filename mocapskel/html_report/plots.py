@@ -241,13 +241,14 @@ def _plot_uncertainty(report: dict) -> str:
             if j.get("uncertainty")]
     if not rows:
         return ""
+    above = float(((report.get("uncertainty") or {}).get("prior") or {}).get("set_by_prior_above", 0.5))
     fig = _figure(9.0, 0.9 + 0.42 * len(rows))
     ax = fig.add_subplot(1, 1, 1)
     h = 0.26
     for r, (_, u) in enumerate(rows):
         for k in range(3):
             sd = max(float(u["sd_mm"][k]), 1e-3)
-            red = float(u["prior_share"][k]) > 0.5
+            red = float(u["prior_share"][k]) > above
             ax.barh(r + (k - 1) * h, sd, height=h * 0.9, color="#d62728" if red else ("#1f77b4", "#4f97d4", "#8fbfe4")[k])
         ax.plot([u["prior_sd_mm"]] * 2, [r - 1.5 * h, r + 1.5 * h], color="#222222", lw=1.5)
     ax.set_xscale("log")
