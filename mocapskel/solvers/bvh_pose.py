@@ -7,7 +7,7 @@ from typing import Literal, overload
 
 import numpy as np
 
-from .parallel import run_blocks
+from .parallel import n_threads, run_blocks
 from .rotations import ORDERS, _parse_order
 from .euler_continuity import RestSteps, order_spike_counts
 
@@ -412,8 +412,19 @@ def rerest_local(parent: np.ndarray, local: np.ndarray, Q: np.ndarray) -> np.nda
     """
     parent = np.asarray(parent, dtype=np.int64)
     Q = np.asarray(Q, dtype=np.float64)
+    local = np.asarray(local, dtype=np.float64)
     Qp = np.where((parent >= 0)[:, None, None], Q[np.maximum(parent, 0)], np.eye(3))
-    return np.einsum("sij,fsjk,slk->fsil", Qp, np.asarray(local, dtype=np.float64), Q, optimize=True)
+    F = local.shape[0]
+    out = np.empty_like(local)  # the layout of local (frames innermost from lab_rot_to_bvh)
+    for s in range(parent.size):
+        # Q[p] L Q[s]^T is linear in L's 9 entries: one (9, 9) x (9, F) product per joint
+        K = np.kron(Qp[s], Q[s])
+        src, dst = local[:, s].transpose(1, 2, 0), out[:, s].transpose(1, 2, 0)
+        if src.flags.c_contiguous and dst.flags.c_contiguous:
+            np.matmul(K, src.reshape(9, F), out=dst.reshape(9, F))
+        else:
+            dst[...] = (K @ src.reshape(9, F)).reshape(3, 3, F)
+    return out
 
 
 def _count_every_step(L: np.ndarray, parent: np.ndarray, Q: np.ndarray, orders: tuple[str, ...],
@@ -489,11 +500,20 @@ def choose_rest_and_order(local: np.ndarray, parent: np.ndarray, frames: np.ndar
             continue
         Q = local_to_global_rot(parent, L[rests])
         sp, nr = sampled.count(Q, orders)
-        for kn in np.lexsort((nr.ravel(), sp.ravel()))[: 1 if exact else n_final].tolist():
-            k, n = divmod(kn, len(orders))
-            if not exact and (sp[k, n] > best[0][0] or (sp[k, n] == best[0][0] and not best[0][1])):
-                continue  # its sampled steps, a part of all, already spike as often as the best on all
-            s_, r_ = (sp[k, n], nr[k, n]) if exact else (x[0, 0] for x in _count_every_step(L, parent, Q[k : k + 1], (orders[n],)))
+        picks = [divmod(kn, len(orders)) for kn in np.lexsort((nr.ravel(), sp.ravel()))[: 1 if exact else n_final].tolist()]
+
+        def worse(k: int, n: int) -> bool:  # its sampled steps, a part of all, already spike as often as the best on all
+            return not exact and (sp[k, n] > best[0][0] or (sp[k, n] == best[0][0] and not best[0][1]))
+
+        if not exact:  # the picks the best so far does not rule out, counted on every step in one pass
+            todo = [(k, n) for k, n in picks if not worse(k, n)]
+            ks, ns = sorted({k for k, _ in todo}), sorted({n for _, n in todo})
+            if todo:
+                full = _count_every_step(L, parent, Q[ks], tuple(orders[n] for n in ns))
+        for k, n in picks:
+            if worse(k, n):
+                continue
+            s_, r_ = (sp[k, n], nr[k, n]) if exact else (x[ks.index(k), ns.index(n)] for x in full)
             cand = ((int(s_), True, int(r_)), int(rests[k]), orders[n])
             if cand[0] < best[0]:
                 best = cand
@@ -513,11 +533,18 @@ def _transpose_blocks(flat: np.ndarray, take: np.ndarray | None = None, scale: n
     """
     F = flat.shape[0]
     out = np.empty((flat.shape[1] if take is None else take.size, F))
-    for f in range(0, F, _CACHE_FRAMES):
-        blk = flat[f : f + _CACHE_FRAMES]
-        if take is not None:
-            blk = np.take(blk, take, axis=1)
-        if scale is not None:
-            blk = blk * scale
-        out[:, f : f + _CACHE_FRAMES] = blk.T
+
+    def part(starts: range) -> None:  # parts of the take write their own frames: side by side on the cores
+        for f in starts:
+            blk = flat[f : f + _CACHE_FRAMES]
+            if take is not None:
+                blk = np.take(blk, take, axis=1)
+            if scale is not None:
+                blk = blk * scale
+            out[:, f : f + _CACHE_FRAMES] = blk.T
+
+    n = -(-F // _CACHE_FRAMES)
+    k = max(1, min(n_threads(), n // 8))  # a part of at least 8 blocks
+    run_blocks(part, [range(_CACHE_FRAMES * (n * i // k), min(F, _CACHE_FRAMES * (n * (i + 1) // k)), _CACHE_FRAMES)
+                      for i in range(k)])
     return out
