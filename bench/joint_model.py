@@ -40,22 +40,34 @@ REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "
 WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepened", 0.0),
            "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03),
            "map-like": ("frames", "deepened", 0.03)}
-#: the variants measured (``--variants``; "rules" is the rules path)
+#: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
+ABLATIONS = {
+    "rules": {},
+    "no-mirror": {"mirror_pairs": False},
+    "no-depth": {"joint_depth": False},
+    "no-leaf": {"leaf_centre": False},
+    "no-hinge-hold": {"hold_hinges": False},
+    # the held refinement's triggers (a joint off the body, or slid); collapsed like-limb joints still trigger it
+    "no-held-fit": {"far": 1e9, "outside": 1e9, "slide": 1e9},
+    "no-moves": {"mirror_pairs": False, "joint_depth": False, "leaf_centre": False, "hold_hinges": False,
+                 "far": 1e9, "outside": 1e9, "slide": 1e9},
+}
+#: the variants measured (``--variants``; "rules" and the ablations are the rules path)
 VARIANTS = ["rules", "map"]
 
 
 def _rigid(mode: str, scale: float):
     from mocapskel.stages import rigid
 
-    if mode == "rules":
-        return rigid.Params(joint_model="rules")
+    if mode in ABLATIONS:
+        return rigid.Params(joint_model="rules", **ABLATIONS[mode])
     w, mean, bone = WEIGHTS[mode]
     return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone)
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
-    return ([("rules", "rules", 0.5)] if "rules" in VARIANTS else []) + [
-        (f"{v} {s:g}", v, s) for v in VARIANTS if v != "rules" for s in scales]
+    return [(v, v, 0.5) for v in VARIANTS if v in ABLATIONS] + [
+        (f"{v} {s:g}", v, s) for v in VARIANTS if v not in ABLATIONS for s in scales]
 
 
 def _vargs() -> list[str]:
@@ -212,10 +224,12 @@ def main() -> None:
     ap.add_argument("--real-only", action="store_true", help="the real takes only")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
     ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
-    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=["rules", *WEIGHTS],
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=[*ABLATIONS, *WEIGHTS],
                     help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
                          "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
-                         "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs)")
+                         "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs); "
+                         "no-mirror, no-depth, no-leaf, no-hinge-hold, no-held-fit, no-moves: the rules path without "
+                         "that move (no-moves: without any)")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
     a = ap.parse_args()
