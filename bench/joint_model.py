@@ -49,6 +49,8 @@ ABLATIONS = {
     "no-hinge-hold": {"hold_hinges": False},
     # the held refinement's triggers (a joint off the body, or slid); collapsed like-limb joints still trigger it
     "no-held-fit": {"far": 1e9, "outside": 1e9, "slide": 1e9},
+    # the depth and leaf-centre moves as priors along the axis, weighed against the data (rigid.Params.moves_by_evidence)
+    "evidence": {"moves_by_evidence": True},
     "no-moves": {"mirror_pairs": False, "joint_depth": False, "leaf_centre": False, "hold_hinges": False,
                  "far": 1e9, "outside": 1e9, "slide": 1e9},
 }
@@ -229,7 +231,7 @@ def main() -> None:
                          "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
                          "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs); "
                          "no-mirror, no-depth, no-leaf, no-hinge-hold, no-held-fit, no-moves: the rules path without "
-                         "that move (no-moves: without any)")
+                         "that move (no-moves: without any); evidence: the depth and leaf moves weighed against the data")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
     a = ap.parse_args()

@@ -3,6 +3,7 @@ half-width inside that marker."""
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Callable
 
 import numpy as np
 
@@ -55,7 +56,7 @@ def _half_width(skel: Skeleton, origin: np.ndarray, c: int, point: np.ndarray, p
     return None if r > LIMB_WIDTH * length else (r, length)
 
 
-def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
+def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None = None) -> Skeleton:
     """Hinges between two limbs with a marker over their axis get their centre one limb half-width
     inside that marker.
 
@@ -75,7 +76,9 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
     on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
     along it from the first (a medial and a lateral knee marker), puts it between the two, wherever
     the fit left it. Each segment keeps its markers where they were; the move is along the axis the
-    joint turns about, so the poses still fit.
+    joint turns about, so the poses still fit. With ``share`` (as in
+    :func:`~mocapskel.solvers.leaf_hinges.centre_leaf_hinges`), that place is a prior on the centre
+    along the axis: the centre goes the prior's share of the way there.
     """
     R = skel.pose_rot
     vis = None if skel.pose_frames is None else segments_seen(
@@ -144,6 +147,10 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float) -> Skeleton:
             m = on[0]
             inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
             shift = t[m] + inward * r
+        if share is not None:  # the posterior mean along the axis: the prior's share of the way
+            shift *= share(int(c), ax)
+            if abs(shift) < 0.05:
+                continue
         origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
         moved[skel.names[c]] = round(float(abs(shift)), 1)
     if not moved:

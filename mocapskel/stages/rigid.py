@@ -26,7 +26,7 @@ from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb
 from ..solvers.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
-from ..solvers.uncertainty import skeleton_uncertainty
+from ..solvers.uncertainty import prior_share_along, skeleton_uncertainty
 
 VERSION = 26
 
@@ -88,6 +88,13 @@ class Params:
     """A hinge at the end of a limb whose child's markers lie nearer it than the parent's (a foot on
     a shank) has its centre put, along the axis, at the mean position of the child's markers (see
     :func:`centre_leaf_hinges`)."""
+    moves_by_evidence: bool = False
+    """The depth and leaf-centre moves (``joint_depth``, ``leaf_centre``) taken as priors on the joint along
+    its axis, not as places to move it to: the joint goes the prior's share of the way (its share of the
+    model's posterior precision along the axis at the refined skeleton,
+    :func:`~mocapskel.solvers.uncertainty.prior_share_along`): all of it where the data say nothing there,
+    none where they fix the joint. The leaf-centre rule's own tests of the data (``LEAF_PLANAR``, the
+    residual) are then not asked."""
     hinge_ratio: float = 0.6
     """A joint is a hinge when the spread of its relative rotations about their second axis is at
     most this fraction of the spread about the first."""
@@ -275,13 +282,30 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             else:
                 skel = one[1]
     refined = skel
+    share = _PriorShares(refined) if params.moves_by_evidence else None
     if params.mirror_pairs:
         skel = centre_mirrored_pairs(skel)
     if params.joint_depth and skel.pose_rot is not None:
-        skel = deepen_joints(skel, params.hinge_ratio)
+        skel = deepen_joints(skel, params.hinge_ratio, share=share)
     if params.leaf_centre and skel.pose_rot is not None:
-        skel = centre_leaf_hinges(skel, params.hinge_ratio)
+        skel = centre_leaf_hinges(skel, params.hinge_ratio, share=share)
     return _with_uncertainty(_with_lengths(skel), refined, params)
+
+
+class _PriorShares:
+    """``share(c, axis)``: the prior's share of joint ``c``'s posterior precision along ``axis`` at the
+    refined skeleton (its uncertainty computed on first use); 1 where it cannot be computed."""
+
+    def __init__(self, refined: Skeleton):
+        self.refined = refined
+        self.joints: dict | None = None
+
+    def __call__(self, c: int, axis: np.ndarray) -> float:
+        if self.joints is None:
+            got = skeleton_uncertainty(self.refined)
+            self.joints = got["joints"] if got else {}
+        j = self.joints.get(self.refined.names[c])
+        return 1.0 if j is None else prior_share_along(j, axis)
 
 
 def _with_uncertainty(skel: Skeleton, refined: Skeleton, params: Params) -> Skeleton:
