@@ -6,8 +6,9 @@ per coordinate. Its curvature at a fitted skeleton, on the refinement's frames, 
 matrix of the whole problem; the per-frame poses are eliminated by the Schur complement
 (:meth:`~mocapskel.solvers.calibrate._Problem.eliminate`, vectorised over frames), which leaves
 the reduced normal matrix over the constant unknowns (bone and marker offsets). Divided by
-``sigma^2``, estimated from the same fit's residual with its degrees of freedom, it is the data's
-precision.
+``sigma^2``, estimated from the same fit's residual with its degrees of freedom, and by how many of the
+fit's frames one independent observation is worth (the residuals' correlation in time, measured from the
+take: :func:`frames_per_independent`), it is the data's precision.
 
 The curvature at the fitted poses counts as information what the noise alone put there: a hinge
 turns about one axis, its fitted poses also turn a little about the others, fitted to the noise,
@@ -335,6 +336,7 @@ def joint_uncertainty(
     prior_scale: float = PRIOR_SCALE,
     chunk: int = 128,
     seed: int = 0,
+    frames_per_independent: float = 1.0,
 ) -> JointUncertainty | None:
     """Every joint's posterior uncertainty at a fitted skeleton (see the module docstring).
 
@@ -344,6 +346,10 @@ def joint_uncertainty(
     rot, root_pos : (F, S, 3, 3), (F, 3) the poses fitted to them with this skeleton.
     prior_scale : the prior's standard deviation as a multiple of the child segment's size.
     seed : of the noise draws that measure what the noise alone puts into the curvature.
+    frames_per_independent : how many of the fit's frames one independent observation is worth
+        (``n / n_eff``, :func:`~mocapskel.solvers.joint_map.effective_frames`): the data's precision is
+        divided by it (residuals that stay alike from frame to frame, as skin motion makes them, say less
+        than as many independent ones).
 
     None when the residual leaves no degree of freedom to measure the noise.
     """
@@ -371,13 +377,14 @@ def joint_uncertainty(
     ops = [_joint_operator(pr, l, int(c)) for c in kids]
     A = np.concatenate([a for a, _ in ops])  # (3K, ng)
     P = (A.T / np.repeat(prior_sd, 3) ** 2) @ A  # the prior's precision over the constant unknowns
-    B = H0 / s2 + P  # the posterior precision before the noise's part is taken out
+    s2p = s2 * max(float(frames_per_independent), 1.0)  # the variance the data's precision is in units of
+    B = H0 / s2p + P  # the posterior precision before the noise's part is taken out
     scale = max(float(np.abs(np.diag(B)).max()), 1e-300)
     B[fix_g, fix_g] = scale  # the gauge's unknowns: no part of any joint's position
     B += 1e-12 * scale * np.eye(pr.ng)
     # the directions the prior weighs in at all: the data's share rho of the precision along each (the
     # generalized eigenvectors of the data's part against B, B-orthonormal), the 3K where it is least (and the gauge's, of none)
-    rho, V = _eigh_generalized(H0 / s2, B)
+    rho, V = _eigh_generalized(H0 / s2p, B)
     take = np.arange(min(3 * K + int(fix_g.sum()), pr.ng))
     take = take[np.abs(V[np.ix_(~fix_g, take)]).max(0) > 0]  # the gauge's own directions left out
     V, rho = V[:, take], rho[take]
@@ -389,13 +396,13 @@ def joint_uncertainty(
     factors = _pose_factors(pr, p, R, d, l, ref_frame, chunk)
     spur, sq = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V, (seed, 0), 1)
     draws = np.ones(V.shape[1])
-    keep = np.flatnonzero(np.diag(spur) > SCREEN * s2)
+    keep = np.flatnonzero(np.diag(spur) > SCREEN * s2p)
     if keep.size and NOISE_PAIRS > 1:
         more, sq_more = _noise_curvature(pr, R, factors, float(np.sqrt(s2)), V[:, keep], (seed, 1), NOISE_PAIRS - 1)
         spur[np.ix_(keep, keep)] = (spur[np.ix_(keep, keep)] + (NOISE_PAIRS - 1) * more) / NOISE_PAIRS
         sq[keep] = (sq[keep] + (NOISE_PAIRS - 1) * sq_more) / NOISE_PAIRS
         draws[keep] = NOISE_PAIRS
-    spur, sq = 0.5 * (spur + spur.T) / s2, sq / s2**2
+    spur, sq = 0.5 * (spur + spur.T) / s2p, sq / s2p**2
     # the spread of that part in the take itself: a sum over frames of parts a frame's noise puts in, each
     # at most one degree of freedom (chi-square: its mean squared is a third of its square's mean), and
     # the spread of its mean over ``draws``
@@ -478,7 +485,7 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     if not (ref < skel.pose_frames.size and skel.pose_frames[ref] == skel.rest_frame):
         return None
     u = joint_uncertainty(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts, rot, root,
-                          ref_frame=ref)
+                          ref_frame=ref, frames_per_independent=frames_per_independent(skel))
     if u is None:
         return None
     joints = {}
@@ -520,3 +527,25 @@ def prior_share_along(joint: dict, u: np.ndarray) -> float:
     u = np.asarray(u, dtype=float) / np.linalg.norm(u)
     lam = float(np.sum((D @ u) ** 2 / sd**2))
     return float(np.clip((1.0 / float(joint["prior_sd_mm"]) ** 2) / lam, 0.0, 1.0)) if lam > 0 else 1.0
+
+
+#: Frames (the middle of the take) on which the residuals' correlation in time is measured: lags of a few
+#: seconds at most matter, and a long take's refinement frames lie farther apart than that.
+CORRELATION_FRAMES = 1024
+
+
+def frames_per_independent(skel) -> float:
+    """How many of the refinement's frames one independent observation is worth: ``n / n_eff``
+    (:func:`~mocapskel.solvers.joint_map.effective_frames`), the residuals' correlation in time measured on
+    the middle ``CORRELATION_FRAMES`` frames of the take (each segment's markers as one rigid shape, as
+    :func:`~mocapskel.solvers.joint_map.residual_correlation` does). Skin that slides with the joint angles
+    keeps a marker's residual alike from one frame to the next; counted as independent, the frames make the
+    data look surer than they are. 1 when it cannot be measured."""
+    from .joint_map import effective_frames, residual_correlation
+
+    pts = skel.joints.topology.segments.markers.points
+    F = pts.shape[0]
+    lo = max(0, F // 2 - CORRELATION_FRAMES // 2)
+    rho = residual_correlation(pts[lo : lo + CORRELATION_FRAMES], np.asarray(skel.marker_segment))
+    n_eff = effective_frames(rho, skel.pose_frames)
+    return max(1.0, skel.pose_frames.size / n_eff) if n_eff > 0 else 1.0
