@@ -21,12 +21,16 @@ before refinement and the poses IK gives it on the refinement's frames), its fra
   ``Point3`` (bone offsets, marker offsets), one ``CustomFactor`` per seen marker per frame (analytic
   Jacobians, unit isotropic noise: its error is half our cost), one linear ``CustomFactor`` per prior
   term (isotropic, sigma = 1 / sqrt(weight)); the same gauge as ours (the reference frame's rotations
-  and the root's first joint's offset held: constants, not variables); Levenberg-Marquardt (Marquardt's
-  diagonal damping, relative tolerance and iteration cap as ours). Its uncertainty: ``gtsam.Marginals`` of
+  and the root's first joint's offset held: constants, not variables). Solved twice from the same start:
+  by gtsam's ``LevenbergMarquardtOptimizer`` (Marquardt's diagonal damping, relative tolerance and
+  iteration cap as ours; ``--lm-cap`` / ``--human-lm-cap`` cut it short where it is too slow to wait for),
+  and by :func:`lm_loop`, Levenberg-Marquardt driven from Python on gtsam's linearisation and
+  elimination (the same damping rule as ours), which isolates the cost of gtsam's solver from the way
+  its optimizer calls Python factors. Its uncertainty: ``gtsam.Marginals`` of
   a second graph at its MAP, the marker factors' sigma the noise from its residual (our degrees of
   freedom), the joints' prior of ``joint_uncertainty`` (sd 0.5 x the child segment's size, on the joint
-  relative to its child's markers, a linear factor on the child's marker offsets) and a prior of sd
-  1000 rad on every rotation (a ridge of 1e-6 rad^-2, as ours damps poses the markers do not fix).
+  relative to its child's markers, a linear factor on the child's marker offsets) and a weak prior on
+  every rotation (:data:`WEAK_ROT_SD`, as ours damps poses the markers do not fix).
   The covariance of each joint relative to its child's markers is that factor's map applied to the
   joint marginal of the child's marker offsets.
 
@@ -327,7 +331,7 @@ class GraphModel:
                 blocks = [Ac[:, pr.gl[m] : pr.gl[m] + 3] for m in ms]
                 target = sum(B @ l_at[m] for B, m in zip(blocks, ms))
                 g.add(self._linear_factor(items, blocks, target, float(prior_sd[k])))
-            weak = gtsam.noiseModel.Isotropic.Sigma(3, 1e3)
+            weak = gtsam.noiseModel.Isotropic.Sigma(3, WEAK_ROT_SD)
             for f, s in self.rot_vars:
                 g.add(gtsam.PriorFactorRot3(self.kR(f, s), gtsam.Rot3(self.R0[f, s]), weak))
         return g
@@ -376,13 +380,17 @@ def lm_loop(graph, v0, iterations: int, tol: float):
             for k, dv in zip(keys, dvals):
                 damped.add(gtsam.JacobianFactor(k, np.diag(np.sqrt(lam * dv + 1e-9)), np.zeros(dv.size),
                                                 gtsam.noiseModel.Unit.Create(dv.size)))
-            delta = damped.optimize(ordering)
+            try:
+                delta = damped.optimize(ordering)
+            except RuntimeError:  # gtsam found the damped system indeterminate (a pose the markers hardly fix)
+                delta = None
             t_solve += time.perf_counter() - t
-            v1 = v.retract(delta)
-            c1 = 2.0 * graph.error(v1)
-            pred = cost - 2.0 * gfg.error(delta)
-            if c1 < cost:
-                break
+            if delta is not None:
+                v1 = v.retract(delta)
+                c1 = 2.0 * graph.error(v1)
+                pred = cost - 2.0 * gfg.error(delta)
+                if c1 < cost:
+                    break
             lam *= nu
             nu *= 2.0
             if lam > 1e8:
@@ -395,6 +403,13 @@ def lm_loop(graph, v0, iterations: int, tol: float):
         if rel < tol:
             break
     return v, it, t_solve
+
+
+#: Standard deviation (rad) of the prior on every rotation in the marginals' graph: a ridge (0.01 rad^-2,
+#: against 1e4 and more from a marker 100 mm out at 1 mm noise) where the markers leave a pose free (a
+#: segment with one marker seen and nothing below it seen: its turn about the line through the marker), as
+#: ours damps its pose blocks; with 1000 rad gtsam's elimination found such a pose indeterminate.
+WEAK_ROT_SD = 10.0
 
 
 def _hat3(u):
@@ -635,3 +650,120 @@ def _cov_gap(C1: np.ndarray, C2: np.ndarray) -> float:
         ev = np.linalg.eigvalsh(Li @ a @ Li.T)
         gaps.append(float(np.abs(0.5 * np.log(np.maximum(ev, 1e-300))).max()))
     return float(np.expm1(max(gaps)))
+
+
+# --------------------------------------------------------------------------------------------------
+# the report
+
+
+def _cases(args):
+    """(name, take factory, refine frames, gtsam LM cap) of every case asked for."""
+    out = []
+    for s in _seeds(args.chain_seeds):
+        out.append((f"hinge chain <4-3-3-3> seed {s}", lambda s=s: hinge_chain((4, 3, 3, 3), 1200,
+                    rng=np.random.default_rng(s), noise=1.0), args.frames, args.lm_cap))
+    if args.large:
+        out.append((f"hinge chain <4-3-3-3> seed 1, {args.large} frames",
+                    lambda: hinge_chain((4, 3, 3, 3), 2 * args.large, rng=np.random.default_rng(1), noise=1.0),
+                    args.large, 0))
+    for s in _seeds(args.human_seeds):
+        out.append((f"human ROM seed {s}", lambda s=s: make(active_rom(seed=s, frames=1200)), args.frames,
+                    args.human_lm_cap))
+    return out
+
+
+def _seeds(text: str) -> list[int]:
+    if not text:
+        return []
+    a, _, b = text.partition("-")
+    return list(range(int(a), int(b or a) + 1))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--chain-seeds", default="1-4")
+    ap.add_argument("--human-seeds", default="1")
+    ap.add_argument("--frames", type=int, default=300, help="frames of the refinement (the rigid stage's)")
+    ap.add_argument("--large", type=int, default=1200, help="a chain refined on this many frames too (0: not)")
+    ap.add_argument("--lm-cap", type=int, default=1000, help="iterations of gtsam's own LM on the chains")
+    ap.add_argument("--human-lm-cap", type=int, default=1,
+                    help="iterations of gtsam's own LM on the human (each costs tens of seconds: see the notes)")
+    args = ap.parse_args(argv)
+    print("## Factor graph (gtsam) against our solver\n")
+    if gtsam is None:
+        print("gtsam is not installed (`pip install gtsam==4.3.0`; it is no dependency of mocapskel): nothing measured.")
+        return
+    from importlib.metadata import version
+
+    print(f"Machine: {machine()}; gtsam {version('gtsam')} (its wheel links no TBB: one thread); "
+          f"MOCAPSKEL_THREADS={os.environ['MOCAPSKEL_THREADS']}, OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}.\n")
+    from threadpoolctl import threadpool_limits
+
+    rows = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for name, factory, frames, cap in _cases(args):
+            take = factory()
+            case = capture(take.markers, take.truth, name, refine_frames=frames)
+            try:
+                rows.append(run_case(case, lm_cap=cap, tight=True))
+            except RuntimeError as err:  # said, and the next case
+                print(f"- {name}: failed ({str(err).strip().splitlines()[0][:200]})\n")
+            print(f"<!-- done: {name} -->", file=sys.stderr, flush=True)
+    _report(rows)
+
+
+def _report(rows: list[dict]) -> None:
+    print("### Speed (one thread, seconds; peak memory over the start, MB)\n")
+    print("| case | frames | factors / variables | ours MAP | gtsam LM | of which in the Python factors | gtsam LM per iteration |"
+          " LM loop on gtsam | of which linear solves | ours uncertainty (plain) | gtsam marginals | peak MB ours / gtsam LM / loop |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        lm = r.get("gtsam LM_s")
+        lm_txt = "—" if lm is None else (f"{lm:.1f} ({r['gtsam LM_iter']} it.)" if r["gtsam_map_from"] == "gtsam LM"
+                                         else f"not run to the end ({r['gtsam LM_iter']} it.: {lm:.1f})")
+        per = "—" if lm is None else f"{lm / max(r['gtsam LM_iter'], 1):.2f}"
+        py = "—" if lm is None else f"{r['gtsam LM_py_s']:.2f}"
+        print(f"| {r['name']} | {r['frames']} | {r['factors']} / {r['variables']} | {r['ours_map_s']:.2f} ({r['ours_iter']} it.) |"
+              f" {lm_txt} | {py} | {per} | {r['gtsam loop_s']:.2f} ({r['gtsam loop_iter']} it.) |"
+              f" {r['gtsam loop_solve_s']:.2f} | {r['ours_unc_s']:.2f} ({r['ours_unc_plain_s']:.2f}) | {r['gtsam_unc_s']:.2f} |"
+              f" {r['ours_map_mb']:.0f} / {r.get('gtsam LM_mb', float('nan')):.0f} / {r['gtsam loop_mb']:.0f} |")
+    print("\n### The MAP (the refinement's tolerance 1e-5, then both to 1e-12)\n")
+    print("| case | objective start | ours | gtsam | joints ours vs gtsam, max mm | at 1e-12: objectives | at 1e-12: joints max mm |"
+          " iterations at 1e-12 | joints vs truth rms mm ours / gtsam |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        to, tg = r["tight_obj"]
+        print(f"| {r['name']} | {r['start_obj']:.2f} | {r['ours_obj']:.4f} | {r['gtsam_obj']:.4f} ({r['gtsam_map_from']}) |"
+              f" {r['maps_max_mm']:.3g} | {to:.6f} / {tg:.6f} | {r['tight_maps_max_mm']:.2g} | {r['tight_iter'][0]} / {r['tight_iter'][1]} |"
+              f" {r.get('ours_truth_rms_mm', float('nan')):.2f} / {r.get('gtsam_truth_rms_mm', float('nan')):.2f} |")
+    print("\n### The uncertainty (sd along each joint's principal axes, mm: medians over the joints)\n")
+    print("| case | noise mm ours / gtsam | prior sd | ours (noise corrected) | ours plain | gtsam marginals |"
+          " largest gap ours plain vs gtsam | ours vs gtsam |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        sd = r["sd"]
+
+        def f(a):
+            return " / ".join(f"{x:.3g}" for x in np.median(a, 0))
+
+        print(f"| {r['name']} | {r['noise_ours']:.4f} / {r['noise_gtsam']:.4f} | {np.median(sd['prior_sd']):.0f} |"
+              f" {f(sd['ours'])} | {f(sd['plain'])} | {f(sd['gtsam'])} | {r['plain_vs_gtsam']:.1e} | {r['ours_vs_gtsam']:.3g} |")
+    print("\n### Coverage of the truth by the 95 % region (joints whose child has 3+ markers, pooled over seeds)\n")
+    print("| takes | joints | ours (noise corrected) | ours plain | gtsam marginals | median error mm | median 95 % radius mm ours / plain / gtsam |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    groups: dict[str, list] = {}
+    for r in rows:
+        key = r["name"].split(" seed")[0] + (f", {r['frames']} frames" if "frames" in r["name"] else "")
+        groups.setdefault(key, []).append(r)
+    for key, rs in groups.items():
+        cov = {w: np.array([e for r in rs for e in r["coverage"][w]]).reshape(-1, 3) for w in ("ours", "plain", "gtsam")}
+        n = len(cov["ours"])
+        if not n:
+            continue
+        inside = [f"{np.mean(cov[w][:, 0] <= CHI2_3_95):.0%}" for w in ("ours", "plain", "gtsam")]
+        radius = " / ".join(f"{np.median(cov[w][:, 2]):.3g}" for w in ("ours", "plain", "gtsam"))
+        print(f"| {key} ({len(rs)} seeds) | {n} | {' | '.join(inside)} | {np.median(cov['ours'][:, 1]):.3g} | {radius} |")
+
+
+if __name__ == "__main__":
+    main()
