@@ -1,6 +1,6 @@
 """A factor-graph library (gtsam) against our own solver of the skeleton model: speed, MAP, uncertainty.
 
-    python -m bench.factor_graph [--chain-seeds 1-6] [--human-seeds 1-2] [--frames 300] [--large 1200]
+    python -m bench.factor_graph [--chain-seeds 1-4] [--human-seeds 1-2] [--frames 300] [--large 1200]
 
 gtsam is optional (``pip install gtsam==4.3.0``, not a dependency of mocapskel): without it this prints a
 note and exits 0.
@@ -688,6 +688,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--lm-cap", type=int, default=1000, help="iterations of gtsam's own LM on the chains")
     ap.add_argument("--human-lm-cap", type=int, default=1,
                     help="iterations of gtsam's own LM on the human (each costs tens of seconds: see the notes)")
+    ap.add_argument("--callback-values", default="0,2000,8000",
+                    help="the cost of a Python factor in gtsam's optimizer, beside these many other values")
     args = ap.parse_args(argv)
     print("## Factor graph (gtsam) against our solver\n")
     if gtsam is None:
@@ -709,7 +711,48 @@ def main(argv: list[str] | None = None) -> None:
             except RuntimeError as err:  # said, and the next case
                 print(f"- {name}: failed ({str(err).strip().splitlines()[0][:200]})\n")
             print(f"<!-- done: {name} -->", file=sys.stderr, flush=True)
-    _report(rows)
+    if rows:
+        _report(rows)
+    callback_cost([int(x) for x in args.callback_values.split(",") if x])
+
+
+def callback_cost(extra_values: list[int], n_factors: int = 1000) -> None:
+    """What a Python factor costs inside gtsam's optimizer: ``n_factors`` trivial ``CustomFactor`` s (a prior on
+    one Point3 each) beside more values (each with a built-in prior), one linearisation called from Python
+    against one Gauss-Newton iteration of gtsam's optimizer."""
+    if not extra_values:
+        return
+
+    def err(this, v, H):
+        x = v.atPoint3(this.keys()[0])
+        if H is not None:
+            H[0] = np.eye(3)
+        return x - 1.0
+
+    print(f"\n### {n_factors} trivial Python factors beside other values: one linearisation from Python against"
+          " one Gauss-Newton iteration of gtsam's optimizer\n")
+    print("| values | linearise from Python (ms) | one optimizer iteration (ms) |")
+    print("|---:|---:|---:|")
+    for extra in extra_values:
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        unit = gtsam.noiseModel.Unit.Create(3)
+        for i in range(n_factors):
+            g.add(gtsam.CustomFactor(unit, [i], err))
+            v.insert(i, np.zeros(3))
+        for j in range(extra):
+            k = n_factors + j
+            v.insert(k, np.zeros(3))
+            g.add(gtsam.PriorFactorPoint3(k, np.zeros(3), unit))
+        t = time.perf_counter()
+        g.linearize(v)
+        a = time.perf_counter() - t
+        p = gtsam.GaussNewtonParams()
+        p.setMaxIterations(1)
+        opt = gtsam.GaussNewtonOptimizer(g, v, p)
+        t = time.perf_counter()
+        opt.iterate()
+        b = time.perf_counter() - t
+        print(f"| {n_factors + extra} | {a * 1e3:.0f} | {b * 1e3:.0f} |")
 
 
 def _report(rows: list[dict]) -> None:
