@@ -430,7 +430,6 @@ def _to_skeleton(start, parent, origin_in, seg, p, R, d, l, ref):
     """The skeleton of a solution in the rest gauge (identity rotations at ``ref``), as refine_skeleton
     returns it, and the rotations Q (S, 3, 3) at ``ref`` that took it there."""
     Q = R[ref].copy()
-    S = len(parent)
     order = calibrate.depth_first_order(parent)
     origin = np.array(origin_in, float)
     l2 = l.copy()
@@ -441,7 +440,7 @@ def _to_skeleton(start, parent, origin_in, seg, p, R, d, l, ref):
     for s in order:
         if parent[s] >= 0:
             origin[s] = origin[parent[s]] + Q[parent[s]] @ d[s]
-    return replace(start, origin=origin, marker_local=l2), Q, S
+    return replace(start, origin=origin, marker_local=l2), Q
 
 
 def _unc_dict(names, kids, cov):
@@ -622,7 +621,7 @@ def run_case(case: Case, lm_cap: int = 1000, tight: bool = True) -> dict:
         out["gtsam_unc_s"] = time.perf_counter() - t
     out["gtsam_unc_mb"] = mem["mb"]
     # into the lab's axes at the rest frame, as ours reports them
-    skel_g, Q, _ = _to_skeleton(case.start, parent, origin, seg, pg, Rg, dg, lg, ref)
+    skel_g, Q = _to_skeleton(case.start, parent, origin, seg, pg, Rg, dg, lg, ref)
     Qc = Q[np.array(pr.kids)]
     cov_g = Qc @ cov_g @ np.swapaxes(Qc, 1, 2)
 
