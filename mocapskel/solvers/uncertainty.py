@@ -531,7 +531,7 @@ def prior_share_along(joint: dict, u: np.ndarray) -> float:
 
 #: Frames (the middle of the take) on which the residuals' correlation in time is measured: lags of a few
 #: seconds at most matter, and a long take's refinement frames lie farther apart than that.
-CORRELATION_FRAMES = 1024
+CORRELATION_FRAMES = 512
 
 
 def frames_per_independent(skel) -> float:
