@@ -15,8 +15,8 @@ from mocapskel.solvers.hybrid import solve_tree
 from mocapskel.solvers.jmv import jmv_joint
 from mocapskel.solvers.rigid import kabsch
 from mocapskel.solvers.score import score_from_markers
-from mocapskel.solvers.sphere import gdke, mgdk, ugdk
-from mocapskel.solvers.sphere_mle import sphere_crlb
+from mocapskel.solvers.spheres.sphere import gdke, mgdk, ugdk
+from mocapskel.solvers.spheres.mle import sphere_crlb
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
 

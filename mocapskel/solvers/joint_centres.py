@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .rigid_shape import shape_poses
-from .sphere import mgdk
+from .spheres.sphere import mgdk
 
 
 def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int,

@@ -9,15 +9,15 @@ the shared papers; equation numbers below are theirs):
 - :func:`gdke`    generalised Delogne–Kåsa estimator, eqs. (2)–(6);
 - :func:`ugdk`    the asymptotically unbiased GDK, eqs. (15)–(21), with the
                   noise variance given or estimated from the data
-                  (:mod:`~mocapskel.solvers.sphere_solve`);
+                  (:mod:`~mocapskel.solvers.spheres.solve`);
 - :func:`mgdk`    several markers at different radii around one centre,
                   eqs. (22)–(23);
 - :class:`IGDK`   incremental GDK with constant memory, eqs. (24)–(25);
 - :func:`sphere_lls`  the algebraic linear least-squares (Kåsa) fit;
 
-The geometric fit and the Cramér–Rao bound are in :mod:`~mocapskel.solvers.sphere_mle`;
-the moments and the solve the closed forms share, in :mod:`~mocapskel.solvers.sphere_moments`
-and :mod:`~mocapskel.solvers.sphere_solve`.
+The geometric fit and the Cramér–Rao bound are in :mod:`~mocapskel.solvers.spheres.mle`;
+the moments and the solve the closed forms share, in :mod:`~mocapskel.solvers.spheres.moments`
+and :mod:`~mocapskel.solvers.spheres.solve`.
 
 All are pure functions of arrays. Rows with a NaN are ignored. A fit that
 cannot be made is a value, not an exception: a :class:`SphereFit` with
@@ -30,8 +30,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .sphere_moments import _as_markers, _empty_moments, _finite_rows, _merge, _Moments, _moments, _single
-from .sphere_solve import MIN_COND, SphereFit, _alg_rms, _failed, _solve
+from .moments import _as_markers, _empty_moments, _finite_rows, _merge, _Moments, _moments, _single
+from .solve import MIN_COND, SphereFit, _alg_rms, _failed, _solve
 
 __all__ = [
     "sphere_lls",
@@ -82,7 +82,7 @@ def ugdk(X: np.ndarray, sigma: float | None = None) -> SphereFit:
         Per-axis standard deviation of the (isotropic Gaussian) measurement
         noise, in the units of ``X``. When None it is estimated from the data
         as the noise level at which the noise-corrected algebraic fit becomes
-        exactly consistent (see :mod:`~mocapskel.solvers.sphere_solve`); the estimate is
+        exactly consistent (see :mod:`~mocapskel.solvers.spheres.solve`); the estimate is
         returned in ``SphereFit.sigma``.
 
     Returns

@@ -15,8 +15,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .sphere_moments import _as_markers, _finite_rows, _moments
-from .sphere_solve import MIN_COND, SphereFit, _failed, _solve
+from .moments import _as_markers, _finite_rows, _moments
+from .solve import MIN_COND, SphereFit, _failed, _solve
 
 __all__ = [
     "sphere_mle",
@@ -47,7 +47,7 @@ def sphere_mle(
         Samples; NaN rows are ignored.
     init : SphereFit or (3,) ndarray, optional
         Starting centre (radii start at the mean distance to it). Default:
-        the :func:`~mocapskel.solvers.sphere.mgdk` fit with ``sigma=0`` (i.e. :func:`~mocapskel.solvers.sphere.gdke` for one
+        the :func:`~mocapskel.solvers.spheres.sphere.mgdk` fit with ``sigma=0`` (i.e. :func:`~mocapskel.solvers.spheres.sphere.gdke` for one
         marker), or the data mean shifted off the data when that fails.
     max_nfev : int, optional
         Function-evaluation budget.

@@ -6,7 +6,7 @@ per-marker power sums about the batch mean (count, mean, scatter matrix
 ``Q = sum |y|^4``, with ``y = x - mean``), obtained from one BLAS Gram matrix
 of ``[1, x - o, |x - o|^2]`` about a provisional origin ``o`` and then shifted
 exactly to the mean. Batches are merged exactly (the parallel-moment formulas
-of Chan et al.), which is what makes :class:`~mocapskel.solvers.sphere.IGDK` equal to the batch fits.
+of Chan et al.), which is what makes :class:`~mocapskel.solvers.spheres.sphere.IGDK` equal to the batch fits.
 """
 from __future__ import annotations
 

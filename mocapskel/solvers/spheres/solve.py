@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sphere_moments import _Moments
+from .moments import _Moments
 
 __all__ = ["SphereFit"]
 
