@@ -1,8 +1,8 @@
 """Marker-ID merging, the evidence: robust pairwise label distances over shared frames, and rigid partners.
 
 A passive system gives a marker a new label whenever it loses it, and adds
-ghost points. The merging kernels (this module, :mod:`~mocapskel.solvers.merge_jumps`,
-:mod:`~mocapskel.solvers.merge_links` and :mod:`~mocapskel.solvers.merge_cluster`)
+ghost points. The merging kernels (this module, :mod:`~mocapskel.solvers.merging.jumps`,
+:mod:`~mocapskel.solvers.merging.links` and :mod:`~mocapskel.solvers.merging.cluster`)
 decide which labels are one physical marker.
 Notation: ``F`` frames, ``L`` labels, ``T`` tracks (groups of labels that are
 believed to be one marker; at first one per label).

@@ -1,6 +1,6 @@
 """Marker-ID merging, the links: track ends joined to track starts where common rigid partners put them.
 
-Notation as in :mod:`mocapskel.solvers.merge_pairs` (``F`` frames, ``T`` tracks).
+Notation as in :mod:`mocapskel.solvers.merging.pairs` (``F`` frames, ``T`` tracks).
 
 - :func:`common_partner_cost` — one marker seen as two tracks keeps the same
   mean distance to every common partner: where the ending track's partners

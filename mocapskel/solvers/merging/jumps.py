@@ -1,6 +1,6 @@
 """Marker-ID merging, the outliers: samples that leave their rigid partners (sporadic jumps, bad gap edges).
 
-Notation as in :mod:`mocapskel.solvers.merge_pairs` (``F`` frames, ``L`` labels).
+Notation as in :mod:`mocapskel.solvers.merging.pairs` (``F`` frames, ``L`` labels).
 
 - :func:`rigid_outliers`, :func:`rigid_steps` — samples that leave their
   partners: by distance, and by the abrupt change of the vectors to them
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .merge_pairs import _CHUNK_ENTRIES
+from .pairs import _CHUNK_ENTRIES
 
 __all__ = [
     "rigid_outliers",
@@ -58,9 +58,9 @@ def rigid_outliers(
     points : (F, L, 3) ndarray, NaN where unseen.
     vis : (F, L) bool ndarray.
     mean, std : (L, L) ndarray
-        Robust mean and std of every pairwise distance (:func:`~mocapskel.solvers.merge_pairs.pair_sums`).
+        Robust mean and std of every pairwise distance (:func:`~mocapskel.solvers.merging.pairs.pair_sums`).
     partner : (L, L) bool ndarray
-        Rigid partners (:func:`~mocapskel.solvers.merge_pairs.partners_of`).
+        Rigid partners (:func:`~mocapskel.solvers.merging.pairs.partners_of`).
     jump_mm, k_sigma, soft : float
 
     Returns

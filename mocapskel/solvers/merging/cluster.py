@@ -1,6 +1,6 @@
 """Marker-ID merging, Kirk's clustering: pose distance between tracks, spectral clustering with repulsion.
 
-Notation as in :mod:`mocapskel.solvers.merge_pairs` (``F`` frames, ``T`` tracks).
+Notation as in :mod:`mocapskel.solvers.merging.pairs` (``F`` frames, ``T`` tracks).
 
 - :func:`pose_distance` — Kirk's distance: the smallest distance between the
   two markers over pairs of frames after rigid alignment of the markers both
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rigid import kabsch
+from ..rigid import kabsch
 
 __all__ = [
     "time_gaps",
