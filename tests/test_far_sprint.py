@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from mocapskel import evaluate, pipeline
-from mocapskel.solvers.partition import frame_scatters
+from mocapskel.solvers.grouping.partition import frame_scatters
 from mocapskel.solvers.rigid_shape import procrustes_shape
 from mocapskel.solvers.rotations import rotvec_to_matrix
 from mocapskel.solvers.score import group_pose, score_from_markers

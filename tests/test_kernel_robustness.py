@@ -18,7 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mocapskel.errors import DataError
-from mocapskel.solvers import distances, grouping, hybrid, jmv, mtb, partition, rigid, rigid_shape, score
+from mocapskel.solvers import hybrid, jmv, mtb, rigid, rigid_shape, score
+from mocapskel.solvers.grouping import distances, grouping, partition
 from mocapskel.solvers.spheres import sphere
 from mocapskel.solvers.spheres.mle import sphere_mle
 from mocapskel.solvers.ik_segment_poses import segment_poses

@@ -16,7 +16,7 @@ from mocapskel.solvers.jmv import (
     nearest_midpoint,
 )
 from mocapskel.solvers.joint_cost import JointFit, balanced_alpha, joint_cost, joint_cost_grad
-from mocapskel.solvers.pair_cost import pair_cost
+from mocapskel.solvers.grouping.pair_cost import pair_cost
 from mocapskel.synth.chains import hang_chain
 
 

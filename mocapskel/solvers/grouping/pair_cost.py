@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .jmv import jmv_joint
-from .joint_cost import _as_points, joint_cost
-from .mtb import mtb_basis, mtb_joint
+from ..jmv import jmv_joint
+from ..joint_cost import _as_points, joint_cost
+from ..mtb import mtb_basis, mtb_joint
 
 __all__ = ["pair_cost"]
 

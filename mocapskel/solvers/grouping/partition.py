@@ -23,8 +23,8 @@ from itertools import combinations
 
 import numpy as np
 
-from .rigid import kabsch
-from .rigid_shape import procrustes_shape, shape_poses
+from ..rigid import kabsch
+from ..rigid_shape import procrustes_shape, shape_poses
 
 #: Triples tried for the split; more than this are sampled (evenly over the combinations' order).
 MAX_TRIPLES = 400

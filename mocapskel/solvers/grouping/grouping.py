@@ -9,7 +9,7 @@ import numpy as np
 
 from .distances import by_first_marker
 from .partition import best_split, frame_path, frame_scatters, rigid_rms, scatter_in_frame
-from .spheres.sphere import sphere_lls
+from ..spheres.sphere import sphere_lls
 
 
 #: A lone marker takes a partner from a group only if their distance varies by at most this many
