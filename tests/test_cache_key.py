@@ -44,7 +44,7 @@ def _changed(monkeypatch: pytest.MonkeyPatch, module: str) -> None:
 
 
 def _ik_solver() -> str:
-    from mocapskel.solvers.ik_solve import solve_ik
+    from mocapskel.solvers.ik.solve import solve_ik
 
     return solve_ik.__module__
 

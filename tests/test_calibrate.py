@@ -12,8 +12,9 @@ from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
 from mocapskel.solvers.calibrate import pick_frames, refine_skeleton
-from mocapskel.solvers.ik_track import track
-from mocapskel.solvers import deepen, hinges, joint_moves, leaf_hinges, mirror, motion, plausible, refinement, rest_pose
+from mocapskel.solvers.ik.track import track
+from mocapskel.solvers import deepen, hinges, joint_moves, leaf_hinges, mirror, plausible, refinement, rest_pose
+from mocapskel.solvers.ik import motion
 from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, make

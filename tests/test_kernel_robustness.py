@@ -22,7 +22,7 @@ from mocapskel.solvers import hybrid, jmv, mtb, rigid, rigid_shape, score
 from mocapskel.solvers.grouping import distances, grouping, partition
 from mocapskel.solvers.spheres import sphere
 from mocapskel.solvers.spheres.mle import sphere_mle
-from mocapskel.solvers.ik_segment_poses import segment_poses
+from mocapskel.solvers.ik.segment_poses import segment_poses
 from mocapskel.synth.rotations import rotvec_to_matrix
 
 #: MOCAPSKEL_HYPOTHESIS_SCALE=20 runs 20 times as many examples (a longer hunt; the suite uses 1).

@@ -12,7 +12,7 @@ frames (bundle adjustment)::
     minimise  sum_f sum_m w_fm |x_m(p_f, R_f; d, l) - y_fm|^2
 
 over the per-frame root positions ``p_f`` and global segment rotations
-``R_f`` (the model of :mod:`mocapskel.solvers.ik_solve`) and the constant bone
+``R_f`` (the model of :mod:`mocapskel.solvers.ik.solve`) and the constant bone
 offsets ``d_c`` (child ``c``'s joint relative to its parent's origin, in the
 parent's rest frame) and marker offsets ``l_m``. Given the rotations the
 marker positions are linear in ``p``, ``d`` and ``l``; the problem is solved
@@ -368,7 +368,7 @@ def refine_skeleton(
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
-    parent, origin, marker_segment, marker_local : the skeleton (as :func:`~mocapskel.solvers.ik_solve.solve_ik`).
+    parent, origin, marker_segment, marker_local : the skeleton (as :func:`~mocapskel.solvers.ik.solve.solve_ik`).
     observed : (F, M, 3) markers (NaN unseen) on a subsample of frames (a few hundred).
     rot, root_pos : (F, S, 3, 3), (F, 3) the starting poses (e.g. IK with the skeleton).
     ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.

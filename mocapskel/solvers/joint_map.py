@@ -49,7 +49,7 @@ from ..artifacts import Skeleton
 from ..model.tree import like_subtrees, subtree_shape
 from .calibrate import refine_skeleton
 from .deepen import deepen_joints
-from .motion import _centres_by_edges, solve
+from .ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from .rest_pose import _rest_markers
 from .rigid_shape import procrustes_shape

@@ -13,7 +13,7 @@ from ..model.measures import visible
 from .calibrate import pick_frames, refine_skeleton
 from .hinges import _hinge_axes
 from .joint_moves import _move_joint, _repose
-from .motion import _centres_by_edges, solve
+from .ik.motion import _centres_by_edges, solve
 from .plausible import collapsed_pairs, implausible_joints, off_the_body, slid_joints
 from .rest_pose import _rest_markers
 from .rotations import segments_seen

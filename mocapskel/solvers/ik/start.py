@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ik_model import _Model
-from .ik_planes import _c_mv, _swing
-from .rigid import kabsch
-from .rotations import fill_joint
+from .problem import _Model
+from .planes import _c_mv, _swing
+from ..rigid import kabsch
+from ..rotations import fill_joint
 
 
 # --------------------------------------------------------------------------- initialisation

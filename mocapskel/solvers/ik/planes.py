@@ -6,7 +6,7 @@ The kernels work on *component planes*: a field of 3-vectors is an array
 (segment-major before it). Every matrix entry is then one contiguous array,
 each arithmetic operation is one numpy call over all segments and frames,
 and converged frames are dropped by indexing the last axis.
-:func:`~mocapskel.solvers.ik_segment_poses.segment_poses`, the per-segment
+:func:`~mocapskel.solvers.ik.segment_poses.segment_poses`, the per-segment
 rigid fit used for the starting pose, works the same way.
 """
 from __future__ import annotations

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..artifacts import Motion, Skeleton
-from ..model.measures import frames_text
-from ..errors import DataError
-from .ik_track import track
-from .ik_segment_poses import segment_poses
-from .ik_solve import solve_ik
-from .ik_unflip import unflip
-from .rotations import hold_unobserved, observed_below, segments_seen, slerp_fill_joints
+from ...artifacts import Motion, Skeleton
+from ...model.measures import frames_text
+from ...errors import DataError
+from .track import track
+from .segment_poses import segment_poses
+from .solve import solve_ik
+from .unflip import unflip
+from ..rotations import hold_unobserved, observed_below, segments_seen, slerp_fill_joints
 
 
 #: Defaults of the IK stage's ``Params.tol`` and ``Params.max_step_deg`` (see there).
@@ -94,7 +94,7 @@ def solve(
     nearest solved pose. ``tol`` (mm) is the solver's convergence tolerance.
     key_poses : (frames (K,), rot (K, S, 3, 3), root_pos (K, 3)) poses known at
     some frames: IK is then solved coarse to fine in time from them
-    (:func:`~mocapskel.solvers.ik_track.track`) and ``centres`` is not used.
+    (:func:`~mocapskel.solvers.ik.track.track`) and ``centres`` is not used.
     version : the IK stage's ``VERSION``, noted in the motion's info.
     """
     if not np.isfinite(points).any():

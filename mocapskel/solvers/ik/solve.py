@@ -33,9 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .parallel import run_blocks
-from .ik_model import _Model, _Tree
-from .ik_planes import (
+from ..parallel import run_blocks
+from .problem import _Model, _Tree
+from .planes import (
     _c_dot,
     _c_expm1,
     _c_is_rotation,
@@ -47,7 +47,7 @@ from .ik_planes import (
     _recycle_large_blocks,
     _unplanes,
 )
-from .ik_start import _initial_rotations, _interp_fill, _root_from_rotations
+from .start import _initial_rotations, _interp_fill, _root_from_rotations
 
 __all__ = ["IKResult", "solve_ik"]
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .parallel import run_blocks
-from .ik_planes import _c_dot, _c_mv, _c_quat_to_mat, _recycle_large_blocks
-from .rigid import _adj4, kabsch
+from ..parallel import run_blocks
+from .planes import _c_dot, _c_mv, _c_quat_to_mat, _recycle_large_blocks
+from ..rigid import _adj4, kabsch
 
 __all__ = ["segment_poses"]
 

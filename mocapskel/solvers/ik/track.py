@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ik_solve import solve_ik
-from .rotations import slerp_fill_joints
+from .solve import solve_ik
+from ..rotations import slerp_fill_joints
 
 __all__ = ["track"]
 
@@ -34,7 +34,7 @@ def track(
     prior slerped between the frames already solved, joint by joint
     (:func:`~mocapskel.solvers.rotations.slerp_fill_joints`) — until every
     frame is.
-    Returns :class:`~mocapskel.solvers.ik_solve.IKResult`-like (rot (F, S, 3, 3),
+    Returns :class:`~mocapskel.solvers.ik.solve.IKResult`-like (rot (F, S, 3, 3),
     root_pos (F, 3), residual (F, M)).
     """
     F, M, _ = observed.shape

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ik_planes import _c_cross, _c_dot, _c_hat, _c_inv3_sym, _c_mm, _c_mmt, _c_mtv, _c_mv, _push
+from .planes import _c_cross, _c_dot, _c_hat, _c_inv3_sym, _c_mm, _c_mmt, _c_mtv, _c_mv, _push
 
 
 # --------------------------------------------------------------------------- tree bookkeeping

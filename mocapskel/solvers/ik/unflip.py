@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ik_solve import solve_ik
+from .solve import solve_ik
 
 
 # --------------------------------------------------------------------------- continuity in time
@@ -96,7 +96,7 @@ def unflip(
         ``info``: ``{"steps_before": n, "steps_after": n, "frames_changed": n}``
         (segment-frames with a turn above ``max_step_deg``; frames given a new pose).
     """
-    from .rotations import slerp_fill
+    from ..rotations import slerp_fill
 
     F, S = rot.shape[:2]
     info = {"steps_before": 0, "steps_after": 0, "frames_changed": 0}
