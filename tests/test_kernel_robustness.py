@@ -18,7 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mocapskel.errors import DataError
-from mocapskel.solvers import hybrid, jmv, mtb, rigid, rigid_shape, score
+from mocapskel.solvers import rigid, rigid_shape
+from mocapskel.solvers.joints import hybrid, jmv, mtb, score
 from mocapskel.solvers.grouping import distances, grouping, partition
 from mocapskel.solvers.spheres import sphere
 from mocapskel.solvers.spheres.mle import sphere_mle

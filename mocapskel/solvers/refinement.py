@@ -11,7 +11,7 @@ import numpy as np
 from ..artifacts import Skeleton
 from ..model.measures import visible
 from .calibrate import pick_frames, refine_skeleton
-from .hinges import _hinge_axes
+from .joints.hinges import _hinge_axes
 from .joint_moves import _move_joint, _repose
 from .ik.motion import _centres_by_edges, solve
 from .plausible import collapsed_pairs, implausible_joints, off_the_body, slid_joints

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..jmv import jmv_joint
-from ..joint_cost import _as_points, joint_cost
-from ..mtb import mtb_basis, mtb_joint
+from ..joints.jmv import jmv_joint
+from ..joints.cost import _as_points, joint_cost
+from ..joints.mtb import mtb_basis, mtb_joint
 
 __all__ = ["pair_cost"]
 
@@ -39,7 +39,7 @@ def pair_cost(
     frames : int or (K,) int array
         Number of evenly spaced frames to use, or the frame indices.
     bases : (Basis or None, Basis or None)
-        The groups' :func:`~mocapskel.solvers.mtb.mtb_basis` on those frames, when the
+        The groups' :func:`~mocapskel.solvers.joints.mtb.mtb_basis` on those frames, when the
         caller has them (a topology scores every pair, each group's basis is made once).
     return_centre : bool
         Also return the joint's trajectory on the frames used (K, 3).

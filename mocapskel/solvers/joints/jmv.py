@@ -38,7 +38,7 @@ import warnings
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .joint_cost import JointFit, _TINY, _alpha_const, _as_points, _cost_terms, _seen, _sqnorm, _stack, balanced_alpha
+from .cost import JointFit, _TINY, _alpha_const, _as_points, _cost_terms, _seen, _sqnorm, _stack, balanced_alpha
 from .mtb import _mtb_init
 
 __all__ = ["edge_alpha", "jmv_joint", "jmv_joint_long", "fixed_radius_centres", "algebraic_init", "nearest_midpoint"]
@@ -135,7 +135,7 @@ _ADJ = [np.array([3 * ((j + r) % 3) + (k + c) % 3 for k in range(3) for j in ran
 
 def _adj3(A: np.ndarray) -> np.ndarray:
     """Adjugates of (F, 3, 3) matrices: ``A @ adj(A) = det(A) I``. Each entry is the cross-product
-    component ``a_{k+1} b_{k+2} - a_{k+2} b_{k+1}`` of two rows (as :func:`~mocapskel.solvers.joint_cost._cross`, bit for bit, in
+    component ``a_{k+1} b_{k+2} - a_{k+2} b_{k+1}`` of two rows (as :func:`~mocapskel.solvers.joints.cost._cross`, bit for bit, in
     a C-ordered array as before: the products that follow depend on the layout in their last bits),
     all nine from four gathers (a quarter of the time of three cross products on a few dozen frames)."""
     a = np.ascontiguousarray(A).reshape(A.shape[0], 9)

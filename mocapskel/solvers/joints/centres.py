@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rigid_shape import shape_poses
-from .spheres.sphere import mgdk
+from ..rigid_shape import shape_poses
+from ..spheres.sphere import mgdk
 
 
 def place_on_hinge(fit, R1: np.ndarray, centres: np.ndarray, edges: np.ndarray, e: int,

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from .rotations import matrix_to_rotvec, project_to_so3
+from ...artifacts import Skeleton
+from ..rotations import matrix_to_rotvec, project_to_so3
 
 
 def _relative_rotations(rot: np.ndarray, p: int, c: int, seen: np.ndarray | None = None,

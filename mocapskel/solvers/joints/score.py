@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rigid_shape import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, _solvable_frames, shape_poses
+from ..rigid_shape import _SMALL_GEMV, _SMALL_PRODUCT, _rotate, _solvable_frames, shape_poses
 
 __all__ = ["ScoreFit", "SaraFit", "score", "score_hinge", "sara", "score_from_markers"]
 

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .jmv import jmv_joint, jmv_joint_long
-from .joint_cost import JointFit, _seen, joint_cost
+from .cost import JointFit, _seen, joint_cost
 from .mtb import COLLINEAR_TOL, Basis, mtb_basis, mtb_joint
 
 __all__ = ["TreeJoints", "solve_tree"]
@@ -142,7 +142,7 @@ def solve_tree(
         Extra keyword arguments for :func:`jmv_joint` (``max_iter``, ``tol``).
     max_frames : int, optional
         JMV fits of longer takes on this many frames spread over the take, every frame then
-        placed from the fitted radii (:func:`~mocapskel.solvers.jmv.jmv_joint_long`, as the
+        placed from the fitted radii (:func:`~mocapskel.solvers.joints.jmv.jmv_joint_long`, as the
         joints stage fits its own JMV joints); None: every frame.
 
     Returns

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .joint_cost import JointFit, _alpha_const, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack, balanced_alpha
+from .cost import JointFit, _alpha_const, _as_points, _cost_terms, _cross, _seen, _sqnorm, _stack, balanced_alpha
 
 __all__ = ["Basis", "mtb_basis", "mtb_joint", "COLLINEAR_TOL"]
 
