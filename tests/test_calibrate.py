@@ -11,9 +11,11 @@ from scipy.spatial.transform import Rotation
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
-from mocapskel.solvers.calibrate import pick_frames, refine_skeleton
+from mocapskel.solvers.model.calibrate import pick_frames, refine_skeleton
 from mocapskel.solvers.ik.track import track
-from mocapskel.solvers import deepen, joint_moves, leaf_hinges, mirror, plausible, refinement, rest_pose
+from mocapskel.solvers import joint_moves, rest_pose
+from mocapskel.solvers.model import refinement
+from mocapskel.solvers.rules import deepen, leaf_hinges, mirror, plausible
 from mocapskel.solvers.joints import hinges
 from mocapskel.solvers.ik import motion
 from mocapskel.stages import ik as ik_stage
@@ -688,7 +690,7 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     import os
     import sys
 
-    from mocapskel.solvers import calibrate
+    from mocapskel.solvers.model import calibrate
 
     if not sys.platform.startswith("linux"):
         pytest.skip("worker processes are forked on Linux only")

@@ -10,7 +10,7 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.model.naming import name_skeleton
-from mocapskel.solvers import plausible
+from mocapskel.solvers.rules import plausible
 from mocapskel.solvers.grouping import grouping
 from mocapskel.solvers.grouping.partition import scatter_in_frame
 from mocapskel.stages import segment

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from .joint_moves import _move_joint, _pose_ms, _with_moves
-from ..model.tree import like_subtrees
-from .rest_pose import _rest_groups
+from ...artifacts import Skeleton
+from ..joint_moves import _move_joint, _pose_ms, _with_moves
+from ...model.tree import like_subtrees
+from ..rest_pose import _rest_groups
 
 
 #: A segment's markers are symmetric about a plane when each, reflected in it, lies within this

@@ -6,11 +6,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from .joints.hinges import _hinge_direction, _relative_rotations
-from .joint_moves import _move_joint, _with_moves
-from .rest_pose import _bone_line, _rest_markers
-from .rotations import segments_seen
+from ...artifacts import Skeleton
+from ..joints.hinges import _hinge_direction, _relative_rotations
+from ..joint_moves import _move_joint, _with_moves
+from ..rest_pose import _bone_line, _rest_markers
+from ..rotations import segments_seen
 
 
 def _limb_radius(skel: Skeleton, s: int, pos: np.ndarray, skip: set) -> float | None:

@@ -8,15 +8,15 @@ from typing import Protocol
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from ..model.measures import visible
+from ...artifacts import Skeleton
+from ...model.measures import visible
 from .calibrate import pick_frames, refine_skeleton
-from .joints.hinges import _hinge_axes
-from .joint_moves import _move_joint, _repose
-from .ik.motion import _centres_by_edges, solve
-from .plausible import collapsed_pairs, implausible_joints, off_the_body, slid_joints
-from .rest_pose import _rest_markers
-from .rotations import segments_seen
+from ..joints.hinges import _hinge_axes
+from ..joint_moves import _move_joint, _repose
+from ..ik.motion import _centres_by_edges, solve
+from ..rules.plausible import collapsed_pairs, implausible_joints, off_the_body, slid_joints
+from ..rest_pose import _rest_markers
+from ..rotations import segments_seen
 
 
 class Params(Protocol):
@@ -79,7 +79,7 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
 
 
 def refinement_frames(skel: Skeleton, frames: int) -> np.ndarray:
-    """The frames a refinement of ``skel`` fits (:func:`~mocapskel.solvers.calibrate.pick_frames`, as many as
+    """The frames a refinement of ``skel`` fits (:func:`~mocapskel.solvers.model.calibrate.pick_frames`, as many as
     :func:`refine_frame_count` allows for ``frames``), its rest frame among them."""
     pts = skel.joints.topology.segments.markers.points
     return pick_frames(visible(pts), refine_frame_count(frames, len(skel.names), pts.shape[0],
@@ -176,7 +176,7 @@ def held_start(out: Skeleton, anchor: Skeleton, joints: list[int], params: Param
     ``params`` None, the second without comparing).
 
     The prior of the held refinement pulls those joints to just that place (see
-    :func:`~mocapskel.solvers.calibrate.refine_skeleton`), and a joint slid along a direction the
+    :func:`~mocapskel.solvers.model.calibrate.refine_skeleton`), and a joint slid along a direction the
     markers hardly fix costs the markers little to move back: started there, the fit has little left to
     do. Started where the free fit left them, Levenberg-Marquardt crept back along that nearly flat
     direction for most of its iterations (a real full-body take of 17 segments: 54 iterations, 2 s,
@@ -212,7 +212,7 @@ def refine_once(skel: Skeleton, params: Params, centres: np.ndarray | None, prio
                 iterations: int | None = None) -> Skeleton:
     """The whole skeleton and its poses refined together on a subsample of frames.
 
-    See :mod:`mocapskel.solvers.calibrate`; the start is IK with the
+    See :mod:`mocapskel.solvers.model.calibrate`; the start is IK with the
     skeleton from the per-segment fits. The refined skeleton keeps the poses
     of those frames (IK starts from them where markers alone cannot).
 

@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.tree import depth_first_order
-from .parallel import Shares, WorkerLost
+from ...model.tree import depth_first_order
+from ..parallel import Shares, WorkerLost
 
 __all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from ..model.tree import like_limb_pairs, like_subtrees, unlike_bones
-from .rest_pose import _extent, _rest_groups, _rest_markers
-from .hull import beyond_hull
+from ...artifacts import Skeleton
+from ...model.tree import like_limb_pairs, like_subtrees, unlike_bones
+from ..rest_pose import _extent, _rest_groups, _rest_markers
+from ..hull import beyond_hull
 
 
 def far_joints(skel: Skeleton, far: float) -> list[int]:

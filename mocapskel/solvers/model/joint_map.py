@@ -12,13 +12,13 @@ prior says where it is:
 size_cs being the rms distance of segment s's markers from the joint at rest (how far the segment
 reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
 hinge with a marker over its axis one limb half-width inside that marker along the axis
-(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.deepen.deepen_joints`, a surface
+(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.rules.deepen.deepen_joints`, a surface
 marker sitting outside the bone, as the prior's mean). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
         [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2]
 
-over the refinement's n frames (:func:`~mocapskel.solvers.calibrate.refine_skeleton` with
+over the refinement's n frames (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` with
 ``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
 fit, while the markers add a term in every frame: where the motion fixes a joint, the data win; along
 a direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
@@ -45,14 +45,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from ..model.tree import like_subtrees, subtree_shape
+from ...artifacts import Skeleton
+from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import refine_skeleton
-from .deepen import deepen_joints
-from .ik.motion import _centres_by_edges, solve
+from ..rules.deepen import deepen_joints
+from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
-from .rest_pose import _rest_markers
-from .rigid_shape import procrustes_shape
+from ..rest_pose import _rest_markers
+from ..rigid_shape import procrustes_shape
 
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
 #: this, so that a noise-free take does not turn the priors' weights to zero.

@@ -1,10 +1,10 @@
 """Each joint's uncertainty: the Laplace approximation of the skeleton model at a fitted skeleton.
 
-The model (see :mod:`mocapskel.solvers.calibrate`): markers are points fixed on rigid segments
+The model (see :mod:`mocapskel.solvers.model.calibrate`): markers are points fixed on rigid segments
 joined at fixed joint centres, plus isotropic Gaussian noise of one standard deviation ``sigma``
 per coordinate. Its curvature at a fitted skeleton, on the refinement's frames, is the Gauss-Newton
 matrix of the whole problem; the per-frame poses are eliminated by the Schur complement
-(:meth:`~mocapskel.solvers.calibrate._Problem.eliminate`, vectorised over frames), which leaves
+(:meth:`~mocapskel.solvers.model.calibrate._Problem.eliminate`, vectorised over frames), which leaves
 the reduced normal matrix over the constant unknowns (bone and marker offsets). Divided by
 ``sigma^2``, estimated from the same fit's residual with its degrees of freedom, it is the data's
 precision.
@@ -55,9 +55,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibrate import _exp, _hat, _Problem
-from .joint_moves import _repose
-from .parallel import run_blocks
-from .rotations import matrix_to_rotvec
+from ..joint_moves import _repose
+from ..parallel import run_blocks
+from ..rotations import matrix_to_rotvec
 
 __all__ = ["JointUncertainty", "joint_uncertainty", "segment_sizes", "PRIOR_SCALE", "SET_BY_PRIOR"]
 
@@ -240,7 +240,7 @@ def reduced_normal_matrix(pr: _Problem, p, R, d, l, ref_frame: int, fix_g: np.nd
 
 def _g_columns(pr: _Problem, R: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.ndarray:
     """(n, 3U, k) the weighted marker Jacobian of the constant unknowns times ``V`` (ng, k), at rotations
-    ``R`` (n, S, 3, 3), its rows ordered as :meth:`~mocapskel.solvers.calibrate._Problem.jacobian`'s
+    ``R`` (n, S, 3, 3), its rows ordered as :meth:`~mocapskel.solvers.model.calibrate._Problem.jacobian`'s
     (coordinate, then marker): a bone offset moves every marker below its joint by its parent's rotation,
     a marker's offset its marker by its segment's rotation."""
     n, k, U, nd = R.shape[0], V.shape[1], pr.used.size, pr.nd
@@ -339,7 +339,7 @@ def joint_uncertainty(
     """Every joint's posterior uncertainty at a fitted skeleton (see the module docstring).
 
     parent, origin, marker_segment, marker_local : the skeleton (as
-    :func:`~mocapskel.solvers.calibrate.refine_skeleton`), its rest pose that of ``ref_frame``.
+    :func:`~mocapskel.solvers.model.calibrate.refine_skeleton`), its rest pose that of ``ref_frame``.
     observed : (F, M, 3) the markers on the frames of the fit (NaN unseen).
     rot, root_pos : (F, S, 3, 3), (F, 3) the poses fitted to them with this skeleton.
     prior_scale : the prior's standard deviation as a multiple of the child segment's size.

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..artifacts import Skeleton
-from .joints.hinges import _hinge_axes, _hinge_direction, _relative_rotations, _relative_rotvecs
-from .joint_moves import _move_joint, _pose_ms, _with_moves
-from .rest_pose import _bone_line, _rest_markers
-from .rotations import segments_seen
+from ...artifacts import Skeleton
+from ..joints.hinges import _hinge_axes, _hinge_direction, _relative_rotations, _relative_rotvecs
+from ..joint_moves import _move_joint, _pose_ms, _with_moves
+from ..rest_pose import _bone_line, _rest_markers
+from ..rotations import segments_seen
 
 
 #: The end of a limb is a short segment: its markers' centroid at most this fraction of its parent's
