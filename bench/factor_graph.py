@@ -8,14 +8,14 @@ note and exits 0.
 The problem: a generated take (a hinge chain from :func:`~mocapskel.synth.chains.hinge_chain`, 1 mm
 noise; the human ROM of :func:`~mocapskel.synth.presets.active_rom`, 48 markers) goes through the
 pipeline up to the rigid stage with ``joint_model="map"``; the first call of that stage's MAP
-refinement (:func:`~mocapskel.solvers.calibrate.refine_skeleton` from
-:func:`~mocapskel.solvers.joint_map.map_refine`) is recorded: its start (the rigid stage's skeleton
+refinement (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` from
+:func:`~mocapskel.solvers.model.joint_map.map_refine`) is recorded: its start (the rigid stage's skeleton
 before refinement and the poses IK gives it on the refinement's frames), its frames and its prior
 (a Gaussian on every joint relative to the marker centroid of each of its two segments, weights
 ``prior_weights``, centred on ``anchor``). Both solvers get exactly that problem:
 
 - ours: ``refine_skeleton`` with the recorded arguments, then
-  :func:`~mocapskel.solvers.uncertainty.joint_uncertainty` at its result, with and without the
+  :func:`~mocapskel.solvers.model.uncertainty.joint_uncertainty` at its result, with and without the
   correction for the noise's part of the curvature;
 - gtsam: per frame a ``Point3`` (root position) and a ``Rot3`` per segment (global rotation), constants
   ``Point3`` (bone offsets, marker offsets), one ``CustomFactor`` per seen marker per frame (analytic
@@ -63,8 +63,8 @@ from bench.common import machine  # noqa: E402
 from bench.uncertainty import CHI2_3_95, joint_errors  # noqa: E402
 from mocapskel.evaluate import segment_map  # noqa: E402
 from mocapskel.pipeline import make_params, run_until  # noqa: E402
-from mocapskel.solvers import calibrate, joint_map  # noqa: E402
-from mocapskel.solvers import uncertainty as unc_mod  # noqa: E402
+from mocapskel.solvers.model import calibrate, joint_map  # noqa: E402
+from mocapskel.solvers.model import uncertainty as unc_mod  # noqa: E402
 from mocapskel.stages import rigid  # noqa: E402
 from mocapskel.synth.chains import hinge_chain  # noqa: E402
 from mocapskel.synth.presets import active_rom, make  # noqa: E402

@@ -24,13 +24,13 @@ from collections.abc import Callable
 import numpy as np
 
 from bench.common import table
-from mocapskel.solvers.hybrid import solve_tree
-from mocapskel.solvers.jmv import jmv_joint
-from mocapskel.solvers.mtb import mtb_basis, mtb_joint
+from mocapskel.solvers.joints.hybrid import solve_tree
+from mocapskel.solvers.joints.jmv import jmv_joint
+from mocapskel.solvers.joints.mtb import mtb_basis, mtb_joint
 from mocapskel.solvers.rigid_shape import shape_poses
-from mocapskel.solvers.score import score_from_markers
-from mocapskel.solvers.sphere import gdke, mgdk, sphere_lls, ugdk
-from mocapskel.solvers.sphere_mle import sphere_crlb, sphere_mle
+from mocapskel.solvers.joints.score import score_from_markers
+from mocapskel.solvers.spheres.sphere import gdke, mgdk, sphere_lls, ugdk
+from mocapskel.solvers.spheres.mle import sphere_crlb, sphere_mle
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
 QUICK = False

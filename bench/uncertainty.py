@@ -37,7 +37,7 @@ import numpy as np
 
 from mocapskel.evaluate import segment_map
 from mocapskel.pipeline import make_params, run_until
-from mocapskel.solvers.uncertainty import skeleton_uncertainty
+from mocapskel.solvers.model.uncertainty import skeleton_uncertainty
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, active_rom, make
 

@@ -374,7 +374,7 @@ def solve(
 
     from . import __version__
     from .errors import DataError
-    from .solvers.motion import solve as solve_motion
+    from .solvers.ik.motion import solve as solve_motion
     from .stages import clean, export, ik
 
     params = dict(params or {})

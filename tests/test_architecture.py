@@ -4,7 +4,8 @@ An AST walk over ``mocapskel/`` finds every import of the package's own modules,
 functions alike, and checks that data flows one way: stages call solvers and the model, never each other,
 the command line or file I/O; solvers need nothing but numpy/scipy, other solvers and the model (its
 data types in ``artifacts.py`` included) and the error types; no import circle anywhere; no module over
-700 lines.
+700 lines; the solvers' folders by concern import one another one way, each says what it holds and
+imports nothing itself, and only the model and the rigid stage use the placement rules.
 """
 from __future__ import annotations
 
@@ -130,3 +131,51 @@ def test_no_import_circle() -> None:
 def test_no_module_over_700_lines(path: Path) -> None:
     n = len(path.read_text().splitlines())
     assert n <= MAX_LINES, f"{path.relative_to(PACKAGE.parent)} has {n} lines"
+
+
+#: The solvers' folders by concern (each a sub-package of ``mocapskel.solvers``); modules at the
+#: solvers' top level are the ones several folders and the rest of the package share.
+SOLVERS = "mocapskel.solvers"
+
+
+def _solver_node(module: str) -> str | None:
+    """A solvers module's folder (``mocapskel.solvers.ik``), or the module itself when it is at the
+    solvers' top level; None outside the solvers."""
+    if not module.startswith(SOLVERS + "."):
+        return None
+    parts = module.split(".")
+    folder = ".".join(parts[:3])
+    return folder if (PACKAGE.parent.joinpath(*parts[:3]) / "__init__.py").is_file() else module
+
+
+def test_the_solvers_are_in_folders_that_say_what_they_hold() -> None:
+    folders = sorted(p for p in (PACKAGE / "solvers").iterdir() if p.is_dir() and (p / "__init__.py").is_file())
+    assert {"model", "joints", "ik", "rules"} <= {p.name for p in folders}
+    for p in folders:
+        init = p / "__init__.py"
+        tree = ast.parse(init.read_text())
+        doc = ast.get_docstring(tree)
+        assert doc and f"{SOLVERS}.{p.name}." in doc, f"{init}: no docstring naming its modules"
+        # importing a folder costs nothing and makes no circle: its __init__ imports nothing
+        assert GRAPH[f"{SOLVERS}.{p.name}"] == set(), f"{init} imports {GRAPH[f'{SOLVERS}.{p.name}']}"
+
+
+def test_the_solver_folders_import_one_another_one_way() -> None:
+    g = nx.DiGraph()
+    for mod, deps in GRAPH.items():
+        a = _solver_node(mod)
+        for d in deps:
+            b = _solver_node(d)
+            if a is not None and b is not None and a != b:
+                g.add_edge(a, b)
+    assert f"{SOLVERS}.model" in g and f"{SOLVERS}.ik" in g
+    cycles = [sorted(c) for c in nx.strongly_connected_components(g) if len(c) > 1]
+    assert not cycles, f"solver folders that import each other: {cycles}"
+
+
+def test_only_the_model_and_the_rigid_stage_use_the_placement_rules() -> None:
+    """The rules are kept beside the model until it replaces them: nothing else may come to rely on them."""
+    rules = f"{SOLVERS}.rules"
+    users = {m for m, deps in GRAPH.items() if any(_within(d, (rules,)) for d in deps) and not _within(m, (rules,))}
+    assert users, "nothing imports the rules: remove the folder"
+    assert all(_within(m, (f"{SOLVERS}.model", "mocapskel.stages.rigid")) for m in users), sorted(users)

@@ -44,7 +44,7 @@ def _changed(monkeypatch: pytest.MonkeyPatch, module: str) -> None:
 
 
 def _ik_solver() -> str:
-    from mocapskel.solvers.ik_solve import solve_ik
+    from mocapskel.solvers.ik.solve import solve_ik
 
     return solve_ik.__module__
 
@@ -131,3 +131,32 @@ def test_without_a_cache_folder_no_code_is_digested(tmp_path: Path, monkeypatch)
     assert run.artifact.n_segments >= 2
     with pytest.raises(AssertionError, match="digested mocapskel.stages.clean"):
         pipeline.run_until(take, "segment", cache=Cache(tmp_path / "cache"))
+
+
+def test_a_module_moved_unchanged_recomputes_the_stages_that_import_it(tmp_path: Path, monkeypatch,
+                                                                      fresh_digests) -> None:
+    """A module's name is part of the digest, not only its source: entries written before a module moved to
+    another folder (same source, other name) are a clean miss for the stages that import it, recomputed with no
+    warning, and the stages before them still come from the cache."""
+    take = tmp_path / "link.trc"
+    write_markers(take, make(Recipe(kind="linkage", frames=300, noise_mm=0.5, seed=1)).markers)
+    folder = tmp_path / "cache"
+    first = pipeline.run_until(take, "ik", cache=Cache(folder))
+    assert first.cached == []
+    solver = _ik_solver()
+    moved = solver + "_moved"
+    real = cache_mod._code
+
+    def renamed(name: str) -> dict[str, bytes | None]:
+        return {(moved if m == solver else m): src for m, src in real(name).items()}
+
+    for s in ("rigid", "ik"):  # the same sources in the same order: only the name tells them apart
+        old, new = real(_stage(s)), renamed(_stage(s))
+        assert [old[m] for m in sorted(old)] == [new[m] for m in sorted(new)] and moved in new
+
+    monkeypatch.setattr(cache_mod, "_code", renamed)
+    cache_mod.code_digest.cache_clear()
+    cache = Cache(folder)
+    again = pipeline.run_until(take, "ik", cache=cache)
+    assert again.cached == ["clean", "merge-ids", "segment", "topology", "joints"]
+    assert again.key != first.key and cache.warnings == []

@@ -11,9 +11,13 @@ from scipy.spatial.transform import Rotation
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
-from mocapskel.solvers.calibrate import pick_frames, refine_skeleton
-from mocapskel.solvers.ik_track import track
-from mocapskel.solvers import deepen, hinges, joint_moves, leaf_hinges, mirror, motion, plausible, refinement, rest_pose
+from mocapskel.solvers.model.calibrate import pick_frames, refine_skeleton
+from mocapskel.solvers.ik.track import track
+from mocapskel.solvers import joint_moves, rest_pose
+from mocapskel.solvers.model import refinement
+from mocapskel.solvers.rules import deepen, leaf_hinges, mirror, plausible
+from mocapskel.solvers.joints import hinges
+from mocapskel.solvers.ik import motion
 from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, make
@@ -408,9 +412,9 @@ def test_distance_penalty_shared_per_segment_puts_gait_hips_nearer_the_truth(mon
     the walk fixes it poorly along the flexion axis, where the distance penalty decides. Kirk's
     penalty, per marker, pulls it into the pelvis; shared half and half between the two segments, the
     pelvis's half on its marker nearest the thigh, it sits nearer the truth, hip by hip, on three seeds."""
-    import mocapskel.solvers.jmv as jmv_mod
-    import mocapskel.solvers.joint_cost as joint_cost_mod
-    import mocapskel.solvers.mtb as mtb_mod
+    import mocapskel.solvers.joints.jmv as jmv_mod
+    import mocapskel.solvers.joints.cost as joint_cost_mod
+    import mocapskel.solvers.joints.mtb as mtb_mod
     from mocapskel.synth.presets import realistic
 
     shared, edge = joint_cost_mod.balanced_alpha, jmv_mod.edge_alpha
@@ -686,7 +690,7 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     import os
     import sys
 
-    from mocapskel.solvers import calibrate
+    from mocapskel.solvers.model import calibrate
 
     if not sys.platform.startswith("linux"):
         pytest.skip("worker processes are forked on Linux only")

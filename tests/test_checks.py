@@ -374,7 +374,7 @@ def test_unlike_limb_bones_counts_the_like_limbs_bones_a_fifth_apart(human_fit) 
     knee is moved up by 30 % of the thigh (its markers kept: the thigh shorter, the shank longer by as much),
     which the check says too."""
     from mocapskel.model.naming import recognise
-    from mocapskel.solvers.plausible import unlike_limb_bones
+    from mocapskel.solvers.rules.plausible import unlike_limb_bones
 
     _, res = human_fit
     motion = res.motion

@@ -260,7 +260,7 @@ def test_neighbour_median_is_the_sorted_median_bit_for_bit():
     """The jump test's median of the four neighbouring changes (a sorting network) gives what
     ``np.sort`` gives (NaN last): the mean of the middle two of four seen, the middle one of three,
     the mean of two, NaN with fewer; and the vector norms are ``np.linalg.norm``'s, bit for bit."""
-    from mocapskel.solvers.merge_jumps import _neighbour_median, norm3
+    from mocapskel.solvers.merging.jumps import _neighbour_median, norm3
 
     rng = np.random.default_rng(5)
     for dtype in (np.float32, np.float64):
@@ -320,7 +320,7 @@ def test_grown_runs_are_scipys_binary_propagation_along_time():
     ``max_len`` frames left out) against scipy's binary propagation with a time-only structure, on random masks."""
     from scipy import ndimage
 
-    from mocapskel.solvers.merge_jumps import grow_runs, runs_of
+    from mocapskel.solvers.merging.jumps import grow_runs, runs_of
 
     rng = np.random.default_rng(5)
     vert = np.zeros((3, 3), dtype=bool)

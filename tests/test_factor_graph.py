@@ -6,8 +6,8 @@ import pytest
 gtsam = pytest.importorskip("gtsam")
 
 from bench import factor_graph as fg  # noqa: E402
-from mocapskel.solvers import calibrate  # noqa: E402
-from mocapskel.solvers import uncertainty as unc_mod  # noqa: E402
+from mocapskel.solvers.model import calibrate  # noqa: E402
+from mocapskel.solvers.model import uncertainty as unc_mod  # noqa: E402
 from mocapskel.synth.chains import hang_chain  # noqa: E402
 
 LINK = 300.0

@@ -15,10 +15,10 @@ from dataclasses import replace
 import numpy as np
 
 from mocapskel import evaluate, pipeline
-from mocapskel.solvers.partition import frame_scatters
+from mocapskel.solvers.grouping.partition import frame_scatters
 from mocapskel.solvers.rigid_shape import procrustes_shape
 from mocapskel.solvers.rotations import rotvec_to_matrix
-from mocapskel.solvers.score import group_pose, score_from_markers
+from mocapskel.solvers.joints.score import group_pose, score_from_markers
 from mocapskel.synth.body import SEGMENTS
 from mocapskel.synth.realistic import realistic_take
 

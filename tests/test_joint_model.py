@@ -9,8 +9,8 @@ import pytest
 
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Segments, Topology
-from mocapskel.solvers.calibrate import pick_frames
-from mocapskel.solvers.joint_map import (effective_frames, like_bone_pairs, noise_sigma, prior_sigmas,
+from mocapskel.solvers.model.calibrate import pick_frames
+from mocapskel.solvers.model.joint_map import (effective_frames, like_bone_pairs, noise_sigma, prior_sigmas,
                                         residual_correlation)
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, active_rom, make, realistic

@@ -11,12 +11,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocapskel.solvers.hybrid import solve_tree
-from mocapskel.solvers.jmv import jmv_joint
+from mocapskel.solvers.joints.hybrid import solve_tree
+from mocapskel.solvers.joints.jmv import jmv_joint
 from mocapskel.solvers.rigid import kabsch
-from mocapskel.solvers.score import score_from_markers
-from mocapskel.solvers.sphere import gdke, mgdk, ugdk
-from mocapskel.solvers.sphere_mle import sphere_crlb
+from mocapskel.solvers.joints.score import score_from_markers
+from mocapskel.solvers.spheres.sphere import gdke, mgdk, ugdk
+from mocapskel.solvers.spheres.mle import sphere_crlb
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
 
@@ -243,7 +243,7 @@ def test_joints_stage_long_take_equals_the_frame_by_frame_computation():
     gives the centres of the plain computation (kabsch poses, SCoRE, each side's image where only one
     segment is seen) to rounding; its diagnostics are those of the whole take within a few percent."""
     from mocapskel import evaluate, pipeline
-    from mocapskel.solvers.score import score
+    from mocapskel.solvers.joints.score import score
     from mocapskel.stages import joints as jstage
     from mocapskel.synth.presets import active_rom, make
 
@@ -283,7 +283,7 @@ def test_relative_turn_is_the_spread_about_the_mean_relative_rotation():
     whatever the segments' own motion; NaN frames are left out."""
     from scipy.spatial.transform import Rotation
 
-    from mocapskel.solvers.joint_centres import relative_turn_deg
+    from mocapskel.solvers.joints.centres import relative_turn_deg
 
     rng = np.random.default_rng(41)
     F = 3000

@@ -18,9 +18,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mocapskel.errors import DataError
-from mocapskel.solvers import distances, grouping, hybrid, jmv, mtb, partition, rigid, rigid_shape, score, sphere
-from mocapskel.solvers.sphere_mle import sphere_mle
-from mocapskel.solvers.ik_segment_poses import segment_poses
+from mocapskel.solvers import rigid, rigid_shape
+from mocapskel.solvers.joints import hybrid, jmv, mtb, score
+from mocapskel.solvers.grouping import distances, grouping, partition
+from mocapskel.solvers.spheres import sphere
+from mocapskel.solvers.spheres.mle import sphere_mle
+from mocapskel.solvers.ik.segment_poses import segment_poses
 from mocapskel.synth.rotations import rotvec_to_matrix
 
 #: MOCAPSKEL_HYPOTHESIS_SCALE=20 runs 20 times as many examples (a longer hunt; the suite uses 1).

@@ -1,6 +1,6 @@
 """A part the take cannot support is left out and said, and the rest is fitted: a segment never seen well
 enough with its joints (see :func:`mocapskel.stages.rigid.without_unfittable`), and points a model
-computed, however they are labelled (see :func:`mocapskel.solvers.distances.computed_points`)."""
+computed, however they are labelled (see :func:`mocapskel.solvers.grouping.distances.computed_points`)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -16,7 +16,7 @@ from mocapskel.errors import DataError
 from mocapskel.evaluate import score_joints
 from mocapskel.io.markers import read_markers, write_markers
 from mocapskel.model.leave_out import cut_off
-from mocapskel.solvers.distances import computed_points
+from mocapskel.solvers.grouping.distances import computed_points
 from mocapskel.synth.chains import hang_tree
 from mocapskel.synth.presets import Recipe, make
 

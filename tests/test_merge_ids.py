@@ -11,9 +11,9 @@ from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Markers, markers_of
 from mocapskel.cli.main import cli
 from mocapskel.io.markers import read_markers, write_markers
-from mocapskel.solvers.merge_cluster import repulsion_spectral, time_gaps
-from mocapskel.solvers.merge_links import link_tracks
-from mocapskel.solvers.merge_pairs import compact_visible, pair_sums, partners_of
+from mocapskel.solvers.merging.cluster import repulsion_spectral, time_gaps
+from mocapskel.solvers.merging.links import link_tracks
+from mocapskel.solvers.merging.pairs import compact_visible, pair_sums, partners_of
 from mocapskel.stages import clean, merge_ids
 from mocapskel.synth import corrupt
 from mocapskel.synth.presets import Recipe, active_rom, make, passive_rom

@@ -94,7 +94,7 @@ def test_the_report_counts_the_frames_each_segment_is_out_of_view(hidden_walk):
 
 def test_frames_where_nothing_is_seen_are_not_counted_out_of_view(hidden_walk):
     from mocapskel.artifacts import markers_of
-    from mocapskel.solvers.motion import solve
+    from mocapskel.solvers.ik.motion import solve
 
     _, _, res = hidden_walk
     sk = res.motion.skeleton

@@ -1,12 +1,12 @@
-"""Rigid-fit residual and the split of a non-rigid group into two rigid bodies (solvers/partition.py,
+"""Rigid-fit residual and the split of a non-rigid group into two rigid bodies (solvers/grouping/partition.py,
 grouping.split_nonrigid), against generated truth."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mocapskel.solvers import distances, grouping
-from mocapskel.solvers.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
+from mocapskel.solvers.grouping import distances, grouping
+from mocapskel.solvers.grouping.partition import best_split, frame_scatters, rigid_rms, scatter_in_frame
 from mocapskel.solvers.rotations import rotvec_to_matrix
 from mocapskel.stages import segment
 

@@ -3,7 +3,7 @@ a joint goes the prior's share of the way, that share from the model's posterior
 import numpy as np
 
 from mocapskel import evaluate, pipeline
-from mocapskel.solvers.uncertainty import prior_share_along
+from mocapskel.solvers.model.uncertainty import prior_share_along
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import active_rom, make
 

@@ -10,8 +10,9 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.model.naming import name_skeleton
-from mocapskel.solvers import grouping, plausible
-from mocapskel.solvers.partition import scatter_in_frame
+from mocapskel.solvers.rules import plausible
+from mocapskel.solvers.grouping import grouping
+from mocapskel.solvers.grouping.partition import scatter_in_frame
 from mocapskel.stages import segment
 from mocapskel.synth.body import HUMANOID_NAMES as HUMANOID, PARENT as TRUE_PARENT, SEGMENTS as TRUE_SEGMENTS
 from mocapskel.synth.presets import make, realistic

@@ -3,7 +3,7 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.errors import DataError
-from mocapskel.solvers import distances, grouping
+from mocapskel.solvers.grouping import distances, grouping
 from mocapskel.stages import segment
 from mocapskel.synth.chains import hang_chain
 
@@ -128,7 +128,7 @@ def test_topology_of_a_long_take_reads_each_frame_once(linkage):
     seen = np.stack([np.isfinite(pts[:, seg.members(s)]).all(-1).sum(1) for s in range(seg.n_segments)], axis=1)
     a, b = topo.edges[0]
     fr = topology.pair_frames(seen[:, a], seen[:, b], frames, topology.Params().n_frames)
-    from mocapskel.solvers.pair_cost import pair_cost
+    from mocapskel.solvers.grouping.pair_cost import pair_cost
 
     assert topo.cost[0] == pair_cost(pts[fr][:, seg.members(a)], pts[fr][:, seg.members(b)], alpha=topo.info["alpha"])
 
@@ -137,7 +137,7 @@ def test_average_linkage_heights_match_scipy():
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
-    from mocapskel.solvers.distances import average_linkage_heights, rigid_groups
+    from mocapskel.solvers.grouping.distances import average_linkage_heights, rigid_groups
 
     rng = np.random.default_rng(3)
     for M in (2, 3, 7, 30, 90):
@@ -150,7 +150,7 @@ def test_average_linkage_heights_match_scipy():
 
 
 def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_other() -> None:
-    from mocapskel.solvers.distances import merge_still_groups
+    from mocapskel.solvers.grouping.distances import merge_still_groups
 
     # four groups: 0 and 1 vary against each other by 2 mm, 2 against both by 20 mm, 3 alone by 40 mm
     lab = np.array([0, 0, 1, 1, 1, 2, 2, 3])
@@ -163,7 +163,7 @@ def test_merge_still_groups_joins_only_groups_that_hardly_move_against_each_othe
 
 
 def test_absorb_lone_markers_by_the_farthest_member_when_asked():
-    from mocapskel.solvers.grouping import absorb_lone_markers
+    from mocapskel.solvers.grouping.grouping import absorb_lone_markers
 
     # marker 4 alone: against group 0 (markers 0, 1) it varies by 2 and 9 mm, against group 1
     # (markers 2, 3) by 30 and 40 mm
@@ -276,7 +276,7 @@ def test_a_lone_marker_takes_no_partner_that_is_far_more_rigid_with_its_own_grou
     """A lone thigh marker (4) and a group of four pelvis markers (0-3): a pelvis marker whose distance to
     the thigh marker varies 8 mm against 2 mm to its own group is the pelvis's, not a marker on the hip's
     axis; one that varies 3 mm to both sides is (a knee or elbow marker), and pairs."""
-    from mocapskel.solvers.grouping import PARTNER_RATIO, pair_lone_markers
+    from mocapskel.solvers.grouping.grouping import PARTNER_RATIO, pair_lone_markers
 
     M = 5
     mean_d = np.full((M, M), 150.0)
@@ -296,7 +296,7 @@ def test_a_lone_marker_takes_no_partner_that_is_far_more_rigid_with_its_own_grou
 def test_a_lone_marker_is_absorbed_by_the_group_nearest_in_space():
     """Skin on a body is on it: a lone marker (4) 150 mm from one group (0, 1) and 500 mm from another
     (2, 3) that it varies less against joins the near one, or none."""
-    from mocapskel.solvers.grouping import absorb_lone_markers
+    from mocapskel.solvers.grouping.grouping import absorb_lone_markers
 
     M = 5
     mean_d = np.full((M, M), 150.0)
@@ -371,7 +371,7 @@ def test_a_lone_marker_that_turns_about_a_point_of_its_group_is_told_from_skin_o
     marker that keeps still on the group (1 mm noise: its path fits a sphere of 3 mm about a point beside
     it, within a level of 2 mm), nor one that turns 3 degrees (a short arc: the fit takes a small sphere)."""
     from mocapskel.solvers.rotations import rotvec_to_matrix
-    from mocapskel.solvers.grouping import turns_about_a_point
+    from mocapskel.solvers.grouping.grouping import turns_about_a_point
 
     rng = np.random.default_rng(0)
     K = 300

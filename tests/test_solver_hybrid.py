@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocapskel.solvers.hybrid import TreeJoints, solve_tree
+from mocapskel.solvers.joints.hybrid import TreeJoints, solve_tree
 from mocapskel.synth.chains import hang_chain, hang_tree, kirk_linkage
 
 

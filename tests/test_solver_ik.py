@@ -5,8 +5,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from mocapskel.solvers import ik_model, ik_planes, ik_segment_poses, ik_solve
-from mocapskel.solvers.ik_solve import solve_ik
+from mocapskel.solvers.ik import planes as ik_planes
+from mocapskel.solvers.ik import problem as ik_model
+from mocapskel.solvers.ik import segment_poses as ik_segment_poses
+from mocapskel.solvers.ik import solve as ik_solve
+from mocapskel.solvers.ik.solve import solve_ik
 
 # --------------------------------------------------------------------------- synthetic skeletons
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mocapskel.solvers.jmv import (
+from mocapskel.solvers.joints.jmv import (
     BODY_MARKERS,
     algebraic_init,
     edge_alpha,
@@ -15,8 +15,8 @@ from mocapskel.solvers.jmv import (
     jmv_joint_long,
     nearest_midpoint,
 )
-from mocapskel.solvers.joint_cost import JointFit, balanced_alpha, joint_cost, joint_cost_grad
-from mocapskel.solvers.pair_cost import pair_cost
+from mocapskel.solvers.joints.cost import JointFit, balanced_alpha, joint_cost, joint_cost_grad
+from mocapskel.solvers.grouping.pair_cost import pair_cost
 from mocapskel.synth.chains import hang_chain
 
 
@@ -251,8 +251,8 @@ def test_adjugate_is_the_cross_products_of_rows_bit_for_bit():
     """The 3x3 adjugates JMV's damped steps invert with: each column the cross product of the other
     two rows (``A adj(A) = det(A) I``), the same floating-point result as three cross products, in
     the same memory layout (a transposed one changed a real take's pair costs by up to 3.6 mm^2)."""
-    from mocapskel.solvers.jmv import _adj3
-    from mocapskel.solvers.joint_cost import _cross
+    from mocapskel.solvers.joints.jmv import _adj3
+    from mocapskel.solvers.joints.cost import _cross
 
     rng = np.random.default_rng(0)
     for F in (0, 1, 7, 300):

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers.jmv import jmv_joint
-from mocapskel.solvers.joint_cost import JointFit, balanced_alpha, joint_cost
-from mocapskel.solvers.mtb import Basis, mtb_basis, mtb_joint
+from mocapskel.solvers.joints.jmv import jmv_joint
+from mocapskel.solvers.joints.cost import JointFit, balanced_alpha, joint_cost
+from mocapskel.solvers.joints.mtb import Basis, mtb_basis, mtb_joint
 from mocapskel.synth.chains import hang_chain, kirk_linkage
 
 
@@ -179,7 +179,7 @@ def test_long_take_basis_is_rigid_and_joint_exact():
 
 def test_unmasked_fast_paths_equal_the_masked_computation():
     """Every point seen: the unmasked sums give what the masked ones give (a never-seen point added)."""
-    from mocapskel.solvers import joint_cost as jcost, mtb
+    from mocapskel.solvers.joints import cost as jcost, mtb
 
     rng = np.random.default_rng(12)
     F = 400

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers.score import (
+from mocapskel.solvers.joints.score import (
     SaraFit,
     ScoreFit,
     sara,
@@ -245,7 +245,7 @@ def test_sara_recovers_the_axis_noise_free():
 
 
 def test_sara_axis_from_noisy_markers():
-    from mocapskel.solvers.score import group_pose
+    from mocapskel.solvers.joints.score import group_pose
 
     rng = np.random.default_rng(10)
     R1, t1, R2, t2, J = _poses(rng, 1000, hinge=True)
@@ -343,7 +343,7 @@ def test_long_take_with_gaps_and_weights_equals_the_stacked_least_squares():
 
 def test_hinge_centre_from_the_sums_equals_the_per_frame_formula():
     """The hinge placement uses the system's sums (R^T R = I); the same as summing over frames."""
-    from mocapskel.solvers import score as S
+    from mocapskel.solvers.joints import score as S
 
     rng = np.random.default_rng(22)
     F = 2000
@@ -367,7 +367,7 @@ def test_hinge_centre_from_the_sums_equals_the_per_frame_formula():
 
 
 def test_group_pose_reference_is_the_first_complete_frame():
-    from mocapskel.solvers.score import group_pose
+    from mocapskel.solvers.joints.score import group_pose
 
     rng = np.random.default_rng(23)
     R1, t1, *_ = _poses(rng, 3000)

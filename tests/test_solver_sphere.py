@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mocapskel.solvers.sphere import (
+from mocapskel.solvers.spheres.sphere import (
     IGDK,
     gdke,
     mgdk,
     sphere_lls,
     ugdk,
 )
-from mocapskel.solvers.sphere_mle import sphere_crlb, sphere_mle
-from mocapskel.solvers.sphere_solve import SphereFit
+from mocapskel.solvers.spheres.mle import sphere_crlb, sphere_mle
+from mocapskel.solvers.spheres.solve import SphereFit
 
 CENTRE = np.array([1200.0, -350.0, 900.0])  # lab-like coordinates, mm
 
@@ -319,7 +319,7 @@ def test_crlb_grows_as_the_cap_shrinks_and_is_infinite_on_a_circle():
 
 def test_moments_of_several_markers_at_once_equal_marker_by_marker():
     """The batched central sums (every marker seen equally often) equal the per-marker ones."""
-    from mocapskel.solvers import sphere_moments
+    from mocapskel.solvers.spheres import moments as sphere_moments
 
     rng = np.random.default_rng(31)
     X = rng.normal(0, 50, (3000, 4, 3)) + [1000.0, -500, 2000]
@@ -344,7 +344,7 @@ def test_brentq_gives_scipys_root_to_the_last_bit():
     on smooth functions of several kinds and tolerances, including the ones the noise estimate uses."""
     from scipy.optimize import brentq as scipy_brentq
 
-    from mocapskel.solvers.sphere_solve import brentq
+    from mocapskel.solvers.spheres.solve import brentq
 
     rng = np.random.default_rng(7)
     checked = 0
@@ -362,7 +362,7 @@ def test_brentq_gives_scipys_root_to_the_last_bit():
 
 
 def test_brentq_refuses_what_scipy_refuses():
-    from mocapskel.solvers.sphere_solve import brentq
+    from mocapskel.solvers.spheres.solve import brentq
 
     with pytest.raises(ValueError, match="different signs"):
         brentq(lambda x: x * x + 1.0, -1.0, 1.0, xtol=1e-12, rtol=1e-15, maxiter=100)
@@ -389,7 +389,7 @@ def test_a_fit_does_not_import_scipy_optimize(tmp_path):
     code = (
         "import sys, mocapskel\n"
         "from mocapskel import pipeline\n"
-        "from mocapskel.solvers import sphere_solve\n"
+        "from mocapskel.solvers.spheres import solve as sphere_solve\n"
         "calls = []\n"
         "plain = sphere_solve.brentq\n"
         "sphere_solve.brentq = lambda *a, **k: calls.append(1) or plain(*a, **k)\n"

@@ -11,8 +11,8 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.evaluate import segment_map
-from mocapskel.solvers import uncertainty as unc_mod
-from mocapskel.solvers.calibrate import _exp, _Problem
+from mocapskel.solvers.model import uncertainty as unc_mod
+from mocapskel.solvers.model.calibrate import _exp, _Problem
 from mocapskel.stages import rigid
 from mocapskel.synth.chains import hang_chain, hinge_chain
 

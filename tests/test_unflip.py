@@ -1,9 +1,9 @@
-"""IK keeps to one of two equally good poses from frame to frame (solvers.ik_unflip.unflip)."""
+"""IK keeps to one of two equally good poses from frame to frame (solvers.ik.unflip.unflip)."""
 from __future__ import annotations
 
 import numpy as np
 
-from mocapskel.solvers.ik_unflip import unflip
+from mocapskel.solvers.ik.unflip import unflip
 from mocapskel.solvers.rotations import rotvec_to_matrix
 
 PARENT = np.array([-1, 0])

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..artifacts import Skeleton
-from .ik_solve import solve_ik
+from .ik.solve import solve_ik
 
 
 def _with_moves(skel: Skeleton, origin: np.ndarray, local: np.ndarray, kids_moved: set, key: str,

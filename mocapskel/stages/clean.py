@@ -6,7 +6,7 @@
   a marker seen with two or more rigid partners (markers whose distance to
   it hardly varies over the take) is a jump only when it leaves those
   partners (by distance or by the abrupt change of the vectors to them,
-  :func:`~mocapskel.solvers.merge_jumps.rigid_jumps`),
+  :func:`~mocapskel.solvers.merging.jumps.rigid_jumps`),
   so that fast motion keeps its samples; a marker without two partners in
   view is judged by its path alone. Jumps are turned into gaps;
 - gap edges: a few frames at both ends of every visible run that borders a
@@ -24,8 +24,8 @@ import numpy as np
 from ..artifacts import Markers
 from ..errors import DataError
 from ..model.measures import visible
-from ..solvers.merge_jumps import judged_by_partners, norm3, rigid_jumps
-from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of
+from ..solvers.merging.jumps import judged_by_partners, norm3, rigid_jumps
+from ..solvers.merging.pairs import _auto_rigid, pair_sums, partners_of
 from ..solvers.parallel import run_blocks
 
 VERSION = 5
@@ -250,7 +250,7 @@ def rigid_verdict(points: np.ndarray, vis: np.ndarray, candidates: np.ndarray, r
     -------
     (F, M) bool ndarray
         At samples seen with two or more reliable rigid partners: the rigid
-        test's verdict (:func:`~mocapskel.solvers.merge_jumps.rigid_jumps`), and the
+        test's verdict (:func:`~mocapskel.solvers.merging.jumps.rigid_jumps`), and the
         candidates that also leave most of those partners by half its distance
         (its *soft* samples), in the blocks of frames around candidates;
         elsewhere the candidates.

@@ -14,7 +14,7 @@ of its markers is fixed only through its joints, and a start from the joints
 stage's centres (tens of mm off for such segments) leads IK to the wrong
 twist in many frames. Such a skeleton's refined poses (the rigid stage's
 ``pose_frames``) are then the start instead: IK is solved coarse to fine in
-time from them (:func:`~mocapskel.solvers.ik_track.track`), each frame
+time from them (:func:`~mocapskel.solvers.ik.track.track`), each frame
 started and held by the slerp of the joints' rotations of the frames already
 solved around it.
 """
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..artifacts import Motion, Skeleton, markers_of
-from ..solvers.motion import MAX_STEP_DEG, TOL, _centres_by_edges, solve
+from ..solvers.ik.motion import MAX_STEP_DEG, TOL, _centres_by_edges, solve
 
 VERSION = 8
 
@@ -45,7 +45,7 @@ class Params:
     max_step_deg: float = MAX_STEP_DEG
     """Stretches of up to 0.5 s that a segment spends between two turns of more than this
     (deg) in one frame are solved again from its rotation slerped across them, and take
-    the new poses where they fit as well (:func:`~mocapskel.solvers.ik_unflip.unflip`); 0: never."""
+    the new poses where they fit as well (:func:`~mocapskel.solvers.ik.unflip.unflip`); 0: never."""
 
 
 def run(skel: Skeleton, params: Params = Params()) -> Motion:

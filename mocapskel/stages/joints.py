@@ -38,15 +38,15 @@ from ..errors import DataError
 from ..model.leave_out import leave_out
 from ..model.naming import segment_names
 from ..solvers.parallel import run_blocks, run_forked
-from ..solvers.hybrid import solve_tree
-from ..solvers.jmv import jmv_joint_long
-from ..solvers.joint_centres import (
+from ..solvers.joints.hybrid import solve_tree
+from ..solvers.joints.jmv import jmv_joint_long
+from ..solvers.joints.centres import (
     _rotate, along_axis_sigma, centre_from_either_side, loose_along_axis, place_on_hinge, relative_turn_deg,
     sphere_centre, spread_frames,
 )
-from ..solvers.joint_cost import distance_penalty, joint_cost
+from ..solvers.joints.cost import distance_penalty, joint_cost
 from ..solvers.rigid_shape import shape_poses
-from ..solvers.score import group_pose, score
+from ..solvers.joints.score import group_pose, score
 
 VERSION = 21
 
@@ -68,7 +68,7 @@ class Params:
     method: str = "auto"
     alpha: float | None = None
     """Kirk's distance penalty in the final fit; None: scaled to the take (``alpha_k`` skin
-    variances per median marker distance, see :func:`~mocapskel.solvers.joint_cost.distance_penalty`).
+    variances per median marker distance, see :func:`~mocapskel.solvers.joints.cost.distance_penalty`).
     Kirk drops it in the final pass but notes it helps where the motion does not exercise
     every degree of freedom — on real takes, most joints: a hinge's centre, or a joint
     between two-marker segments, otherwise slides off along what the markers do not fix."""

@@ -52,10 +52,10 @@ import numpy as np
 from ..artifacts import Markers
 from ..errors import DataError
 from ..model.measures import visible
-from ..solvers.merge_cluster import pose_distance, repulsion_spectral, time_gaps
-from ..solvers.merge_jumps import rigid_jumps, runs_of
-from ..solvers.merge_links import common_partner_cost, link_tracks, triangle_links
-from ..solvers.merge_pairs import _auto_rigid, pair_sums, partners_of, track_sums
+from ..solvers.merging.cluster import pose_distance, repulsion_spectral, time_gaps
+from ..solvers.merging.jumps import rigid_jumps, runs_of
+from ..solvers.merging.links import common_partner_cost, link_tracks, triangle_links
+from ..solvers.merging.pairs import _auto_rigid, pair_sums, partners_of, track_sums
 
 log = logging.getLogger("mocapskel")
 

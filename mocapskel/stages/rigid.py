@@ -18,15 +18,15 @@ from ..model.leave_out import cut_off, leave_out, segment_words
 from ..model.tree import depth_first_order
 from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
-from ..solvers.deepen import deepen_joints
-from ..solvers.leaf_hinges import centre_leaf_hinges
-from ..solvers.joint_map import map_refine, noise_sigma, residual_correlation
-from ..solvers.mirror import centre_mirrored_pairs
-from ..solvers.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
-from ..solvers.refinement import _refine_once, refine
+from ..solvers.rules.deepen import deepen_joints
+from ..solvers.rules.leaf_hinges import centre_leaf_hinges
+from ..solvers.model.joint_map import map_refine, noise_sigma, residual_correlation
+from ..solvers.rules.mirror import centre_mirrored_pairs
+from ..solvers.rules.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
+from ..solvers.model.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
-from ..solvers.uncertainty import prior_share_along, skeleton_uncertainty
+from ..solvers.model.uncertainty import prior_share_along, skeleton_uncertainty
 
 VERSION = 26
 
@@ -55,7 +55,7 @@ class Params:
     joint_prior: float = 0.01
     """Weight (per frame) of the prior that holds each joint where the joints stage put it
     relative to the markers of its two segments (see
-    :func:`~mocapskel.solvers.calibrate.refine_skeleton`), used when the refinement without
+    :func:`~mocapskel.solvers.model.calibrate.refine_skeleton`), used when the refinement without
     it leaves a joint implausibly far from its segments' markers (it slid along a direction
     the markers do not fix). Without need it stays off: on a skeleton of two-marker segments
     the joints stage's centres are rough, and only the whole skeleton's rigidity, unheld,
@@ -92,7 +92,7 @@ class Params:
     """The depth and leaf-centre moves (``joint_depth``, ``leaf_centre``) taken as priors on the joint along
     its axis, not as places to move it to: the joint goes the prior's share of the way (its share of the
     model's posterior precision along the axis at the refined skeleton,
-    :func:`~mocapskel.solvers.uncertainty.prior_share_along`): all of it where the data say nothing there,
+    :func:`~mocapskel.solvers.model.uncertainty.prior_share_along`): all of it where the data say nothing there,
     none where they fix the joint. The leaf-centre rule's own tests of the data (``LEAF_PLANAR``, the
     residual) are then not asked."""
     hinge_ratio: float = 0.6
@@ -109,7 +109,7 @@ class Params:
     joint_model: str = "rules"
     """``"rules"``: the refinement, the held fit and the moves above. ``"map"``: the refinement is the
     model's MAP with an explicit Gaussian prior on every joint (see
-    :mod:`~mocapskel.solvers.joint_map`), and nothing is moved after it; of the starts (the joints
+    :mod:`~mocapskel.solvers.model.joint_map`), and nothing is moved after it; of the starts (the joints
     stage's centres and its second estimate), the one of lowest negative log posterior is kept.
     ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
     ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
@@ -125,13 +125,13 @@ class Params:
     data_weight: str = "frames"
     """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
-    correlation in time allows (:func:`~mocapskel.solvers.joint_map.effective_frames`: skin motion
+    correlation in time allows (:func:`~mocapskel.solvers.model.joint_map.effective_frames`: skin motion
     makes neighbouring frames' residuals alike)."""
     bone_sigma: float = 0.0
     """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
     of their length (a Gaussian factor per pair; 0: no such factor)."""
     uncertainty: bool = True
-    """Every joint's uncertainty (:mod:`~mocapskel.solvers.uncertainty`) into ``info["uncertainty"]``;
+    """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
 
 
@@ -320,7 +320,7 @@ def _with_uncertainty(skel: Skeleton, refined: Skeleton, params: Params) -> Skel
 
 def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, parent_edge: np.ndarray,
              order: np.ndarray, params: Params) -> Skeleton:
-    """The MAP refinement (:func:`~mocapskel.solvers.joint_map.map_refine`) from every start the joints
+    """The MAP refinement (:func:`~mocapskel.solvers.model.joint_map.map_refine`) from every start the joints
     stage offers, in forked processes; the start of lowest negative log posterior is kept."""
     starts = [(joints.centres, skel)]
     if joints.alt_centres is not None:

@@ -25,15 +25,15 @@ import numpy as np
 
 from ..artifacts import Markers, Segments
 from ..errors import DataError
-from ..solvers.distances import (
+from ..solvers.grouping.distances import (
     _distance_std, _extent, _flat, _pair_distances, affinity, choose_sigma, computed_points, merge_still_groups,
     rigid_groups, skin_level, spread_cost,
 )
-from ..solvers.grouping import (
+from ..solvers.grouping.grouping import (
     absorb_lone_markers, absorb_pairs, join_markers_on_joints, pair_lone_markers, reassign_by_frame, split_nonrigid,
     turns_about_a_point,
 )
-from ..solvers.spectral import spectral_clustering
+from ..solvers.grouping.spectral import spectral_clustering
 
 VERSION = 13
 

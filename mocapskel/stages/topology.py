@@ -27,10 +27,10 @@ from ..model.measures import marker_extent
 from ..model.measures import visible as _seen
 from ..errors import DataError
 from ..solvers.parallel import n_threads, run_forked
-from ..solvers.joint_cost import balanced_alpha, distance_penalty
-from ..solvers.mtb import mtb_basis
-from ..solvers.pair_cost import pair_cost
-from ..solvers.partition import rigid_rms
+from ..solvers.joints.cost import balanced_alpha, distance_penalty
+from ..solvers.joints.mtb import mtb_basis
+from ..solvers.grouping.pair_cost import pair_cost
+from ..solvers.grouping.partition import rigid_rms
 
 VERSION = 12
 

@@ -1,0 +1,210 @@
+"""Joints by the model's MAP: the whole skeleton refined with explicit Gaussian priors as factors.
+
+The model of a take (DESIGN, "One model, not rules"): markers are points fixed on rigid segments,
+the segments meet at fixed joint centres, and what is left is noise of standard deviation
+``sigma_n`` per axis, measured from the take (:func:`noise_sigma`). Where the
+markers do not fix a joint (a hinge's centre along its axis, a shoulder along its swing axis), a
+prior says where it is:
+
+    joint c, relative to the marker centroid of each of its two segments s (in s's frame),
+    ~ N(mean_c, sigma_cs^2 I),  sigma_cs = ``scale`` x size_cs,
+
+size_cs being the rms distance of segment s's markers from the joint at rest (how far the segment
+reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
+hinge with a marker over its axis one limb half-width inside that marker along the axis
+(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.rules.deepen.deepen_joints`, a surface
+marker sitting outside the bone, as the prior's mean). The MAP minimises
+
+    (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
+        [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2]
+
+over the refinement's n frames (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` with
+``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
+fit, while the markers add a term in every frame: where the motion fixes a joint, the data win; along
+a direction they leave free, the prior decides. Nothing is moved after the fit. ``sigma_n`` comes from
+the markers alone, so that every start is scored by the same model.
+
+The data's weight. Skin slides with the joint angles, so a marker's residual in one frame is nearly
+its residual in the next: n frames are not n independent observations, and counted as such they
+make the data look sure along directions the motion does not fix (a knee along its axis) and the
+joints slide there into the skin motion. With ``data_weight="effective"`` the frames count as
+n_eff = n^2 / sum_ij rho(|t_i - t_j|) (:func:`effective_frames`), rho the correlation in time of the
+markers' residuals in their segments' frames, measured from the take (:func:`residual_correlation`);
+``"frames"`` keeps n_eff = n.
+
+Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
+differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
+
+Several starts (the joints stage's centres and its second estimate) are each refined with a prior
+centred on its own start (a mixture prior of equal weights); the start of lowest negative log
+posterior is kept.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ...artifacts import Skeleton
+from ...model.tree import like_subtrees, subtree_shape
+from .calibrate import refine_skeleton
+from ..rules.deepen import deepen_joints
+from ..ik.motion import _centres_by_edges, solve
+from .refinement import refinement_frames
+from ..rest_pose import _rest_markers
+from ..rigid_shape import procrustes_shape
+
+#: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
+#: this, so that a noise-free take does not turn the priors' weights to zero.
+NOISE_FLOOR_MM = 0.1
+
+
+def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
+    """The take's marker noise per axis (mm), from the markers alone (not the joints, which differ
+    between starts): every segment of three or more markers fitted as one rigid shape over the frames
+    ``points`` (F, M, 3), the residual sum of squares over its degrees of freedom (3 per seen marker,
+    less 6 for each frame's pose); at least :data:`NOISE_FLOOR_MM`."""
+    sse, dof = 0.0, 0.0
+    for s in np.unique(group[group >= 0]):
+        obs = points[:, group == s]
+        if obs.shape[1] < 3:
+            continue
+        _, _, _, rms = procrustes_shape(obs)
+        n = np.isfinite(obs).all(-1).sum(1)
+        ok = np.isfinite(rms) & (n >= 3)
+        sse += float(np.sum(rms[ok] ** 2 * n[ok]))
+        dof += float(np.sum(3 * n[ok] - 6))
+    return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
+
+
+def residual_correlation(points: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """rho (L,): the correlation of the markers' residuals between frames ``k`` apart (rho[0] = 1), pooled
+    over every marker and axis of every segment of three or more markers, each segment's markers fitted
+    as one rigid shape over the consecutive frames ``points`` (F, M, 3) and its residuals taken in the
+    segment's frame. Skin motion follows the joint angles, so these residuals are smooth in time. rho is
+    cut at its first lag that is not positive (Geyer's initial positive sequence) and is 0 beyond."""
+    F = points.shape[0]
+    n = 1 << int(np.ceil(np.log2(max(2 * F, 2))))
+    num, cnt = np.zeros(F), np.zeros(F)
+    for s in np.unique(group[group >= 0]):
+        obs = points[:, group == s]
+        if obs.shape[1] < 3:
+            continue
+        shape, R, t, _ = procrustes_shape(obs)
+        back = np.einsum("fji,fpj->fpi", R, obs - t[:, None, :]) - shape
+        x = back.reshape(F, -1)
+        m = np.isfinite(x)
+        mu = np.where(m, x, 0.0).sum(0) / np.maximum(m.sum(0), 1)
+        x = np.where(m, x - mu, 0.0)
+        X, Mk = np.fft.rfft(x, n, axis=0), np.fft.rfft(m.astype(float), n, axis=0)
+        num += np.fft.irfft(X * X.conj(), n, axis=0)[:F].sum(1)
+        cnt += np.fft.irfft(Mk * Mk.conj(), n, axis=0)[:F].round().sum(1)
+    if cnt[0] <= 0 or num[0] <= 0:
+        return np.ones(1)
+    rho = np.where(cnt > 0, num / np.maximum(cnt, 1), 0.0) / (num[0] / cnt[0])
+    stop = np.flatnonzero(rho <= 0)
+    return rho[: stop[0]] if stop.size else rho
+
+
+def effective_frames(rho: np.ndarray, frames: np.ndarray) -> float:
+    """How many independent frames the frames ``frames`` (indices into the take) are worth when their
+    residuals correlate as ``rho`` (:func:`residual_correlation`): n^2 / sum_ij rho(|t_i - t_j|), the
+    count whose mean has the variance of theirs. n for uncorrelated residuals, 1 for identical ones."""
+    t = np.asarray(frames, dtype=np.int64)
+    if t.size == 0:
+        return 0.0
+    lag = np.abs(t[:, None] - t[None, :])
+    r = np.where(lag < rho.size, rho[np.minimum(lag, rho.size - 1)], 0.0)
+    return float(t.size**2 / r.sum())
+
+
+def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:
+    """(S, 2) the prior's standard deviation (mm) on child c's joint in its parent's frame ([c, 0]) and in
+    its own ([c, 1]): ``scale`` x the rms distance of that segment's markers from the joint at rest in
+    ``mean``; NaN where the segment has no marker or c is the root."""
+    pos = _rest_markers(mean)
+    seg = mean.marker_segment
+    S = len(mean.names)
+    out = np.full((S, 2), np.nan)
+    for c in range(S):
+        p = int(mean.parent[c])
+        if p < 0:
+            continue
+        for j, s in enumerate((p, c)):
+            m = (seg == s) & np.isfinite(pos).all(1)
+            if m.any():
+                size = float(np.sqrt(np.mean(np.sum((pos[m] - mean.origin[c]) ** 2, axis=1))))
+                if size > 0:
+                    out[c, j] = scale * size
+    return out
+
+
+def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
+    """(x, y): segments of two like limbs (:func:`~mocapskel.model.tree.like_subtrees`: subtrees of the same
+    shape and marker counts) that match, segment for segment, their children taken in order of their
+    subtrees' shapes; each x's offset from its parent's origin is the like of y's (the first joints from
+    the common parent, then the limbs' bones)."""
+    parent = np.asarray(skel.parent)
+    count = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(parent))
+    out: list[tuple[int, int]] = []
+
+    def match(x: int, y: int) -> None:
+        out.append((x, y))
+        kx = sorted((int(k) for k in np.flatnonzero(parent == x)), key=lambda k: subtree_shape(parent, count, k))
+        ky = sorted((int(k) for k in np.flatnonzero(parent == y)), key=lambda k: subtree_shape(parent, count, k))
+        for u, v in zip(kx, ky):
+            match(u, v)
+
+    for _, a, b in like_subtrees(parent, count):
+        match(a, b)
+    return out
+
+
+def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
+               mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
+               bone_sigma: float = 0.0) -> Skeleton:
+    """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
+    joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
+    ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
+    every start of a take) and the prior's sigmas. With ``rho`` (:func:`residual_correlation`), the
+    refinement's n frames count as :func:`effective_frames` n_eff independent ones: the data term is
+    scaled by n_eff / n (the prior's weights by n / n_eff). With ``bone_sigma`` > 0, like limbs' bones
+    (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
+    length at the start: one more factor each."""
+    pts = start.joints.topology.segments.markers.points
+    use = refinement_frames(start, frames)
+    if use.size < 10:
+        return start
+    ref = int(np.searchsorted(use, start.rest_frame))
+    c = _centres_by_edges(start, centres)
+    pose = solve(start, pts[use], c[use])
+    centre = start
+    if mean == "deepened":
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
+    sn = noise
+    sig = prior_sigmas(centre, scale)
+    n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
+    inflate = use.size / n_eff  # the noise variance per frame, as seen by the data term, times this
+    w = np.where(np.isfinite(sig), inflate * sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
+    ties, tie_sig = [], []
+    if bone_sigma > 0:
+        for x, y in like_bone_pairs(start):
+            lx, ly = (float(np.linalg.norm(start.origin[k] - start.origin[start.parent[k]])) for k in (x, y))
+            sb = bone_sigma * 0.5 * (lx + ly)
+            if sb > 0:
+                ties.append((x, y, inflate * sn**2 / sb**2))
+                tie_sig.append(sb)
+    res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                          pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
+                          anchor=(centre.origin, centre.marker_local), like_bones=ties)
+    # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
+    nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
+           + float(np.sum(np.log(tie_sig))))
+    info = dict(start.info)
+    info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
+                       "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
+                       "prior_scale": scale, "neg_log_posterior": nlp,
+                       "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
+                                          if start.parent[k] >= 0}}
+    return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
+                   pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)
