@@ -217,3 +217,26 @@ def test_the_joint_is_measured_in_the_frame_of_its_childs_markers():
             across = turn - (w @ axis) * about  # the part of the turn the two markers do see
             assert np.allclose(A @ across, 0.0, atol=1e-9)
             assert np.linalg.norm(A @ about) > 1.0  # the joint 200 mm off their line moves with that turn
+
+
+def test_frames_count_as_the_independent_observations_they_are_worth(monkeypatch):
+    # white noise: a marker's residual in one frame says nothing of the next, every frame counts; soft tissue
+    # that moves a marker the same way for many frames: the refinement's frames are worth fewer, and the
+    # joints' regions widen by the square root of that
+    from mocapskel.pipeline import make_params, run_until
+    from mocapskel.solvers.model.uncertainty import frames_per_independent
+    from mocapskel.synth.presets import Recipe, active_rom, make
+
+    white = run_until(make(Recipe(kind="human", seed=2, frames=1200, noise_mm=1.0)).markers, "rigid", make_params()).artifact
+    skin = run_until(make(active_rom(seed=2, frames=1200)).markers, "rigid", make_params()).artifact
+    k_white, k_skin = frames_per_independent(white), frames_per_independent(skin)
+    assert 1.0 <= k_white < 1.3
+    assert k_skin > 1.5
+    # the same skeleton with every frame counted: the data's sd (where they, not the prior, decide) shrinks
+    # by about the square root of the frames one observation is worth
+    from mocapskel.solvers.model import uncertainty as um
+
+    monkeypatch.setattr(um, "frames_per_independent", lambda skel: 1.0)
+    every = um.skeleton_uncertainty(skin)["joints"]
+    ratios = [min(j["sd_mm"]) / min(every[n]["sd_mm"]) for n, j in skin.info["uncertainty"]["joints"].items()]
+    assert abs(np.median(ratios) - np.sqrt(k_skin)) < 0.15 * np.sqrt(k_skin)
