@@ -83,15 +83,25 @@ def residual_correlation(points: np.ndarray, group: np.ndarray) -> np.ndarray:
     as one rigid shape over the consecutive frames ``points`` (F, M, 3) and its residuals taken in the
     segment's frame. Skin motion follows the joint angles, so these residuals are smooth in time. rho is
     cut at its first lag that is not positive (Geyer's initial positive sequence) and is 0 beyond."""
-    F = points.shape[0]
-    n = 1 << int(np.ceil(np.log2(max(2 * F, 2))))
-    num, cnt = np.zeros(F), np.zeros(F)
+    backs = []
     for s in np.unique(group[group >= 0]):
         obs = points[:, group == s]
         if obs.shape[1] < 3:
             continue
         shape, R, t, _ = procrustes_shape(obs)
-        back = np.einsum("fji,fpj->fpi", R, obs - t[:, None, :]) - shape
+        backs.append(np.einsum("fji,fpj->fpi", R, obs - t[:, None, :]) - shape)
+    return correlation_in_time(backs)
+
+
+def correlation_in_time(backs: list[np.ndarray]) -> np.ndarray:
+    """:func:`residual_correlation`'s rho from the residuals themselves: a list of (F, P, 3) arrays over the
+    same consecutive frames (NaN where unseen), each series' mean taken out."""
+    if not backs:
+        return np.ones(1)
+    F = backs[0].shape[0]
+    n = 1 << int(np.ceil(np.log2(max(2 * F, 2))))
+    num, cnt = np.zeros(F), np.zeros(F)
+    for back in backs:
         x = back.reshape(F, -1)
         m = np.isfinite(x)
         mu = np.where(m, x, 0.0).sum(0) / np.maximum(m.sum(0), 1)
