@@ -115,6 +115,26 @@ def test_c3d_with_generated_header_values(rate: float, scale: float, frames: int
     assert_clean_end(invoke("inspect", f), allowed=(0, 3))
 
 
+@pytest.mark.parametrize("scale", [float("inf"), float("-inf"), float("nan")])
+def test_c3d_whose_point_scale_is_not_a_number_is_refused(scale: float) -> None:
+    # found by the test above: an infinite POINT:SCALE made integer data 0 x inf (exit 1, a RuntimeWarning)
+    F, P = 20, 3
+    rng = np.random.default_rng(0)
+    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
+    f = TMP / "scale.c3d"
+    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
+    b = bytearray(f.read_bytes())
+    struct.pack_into("<f", b, 12, scale)
+    i = b.find(b"SCALE", 512)
+    struct.pack_into("<f", b, i + len(b"SCALE") + 2 + 2, scale)
+    f.write_bytes(bytes(b))
+    for cmd in ("inspect", "fit"):
+        r = invoke(cmd, f) if cmd == "inspect" else invoke(cmd, f, "-o", str(TMP / "scale.bvh"))
+        assert r.exit_code == 3, r.stderr
+        assert "POINT:SCALE" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (TMP / "scale.bvh").exists()
+
+
 @FUZZ
 @given(values=st.lists(st.tuples(st.integers(0, 2000), st.binary(min_size=1, max_size=4)), min_size=1, max_size=6))
 def test_c3d_with_generated_bytes_in_its_header_and_parameters(values) -> None:

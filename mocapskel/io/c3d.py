@@ -237,6 +237,9 @@ def read_c3d(path: str | os.PathLike, *, engine: Literal["auto", "ezc3d", "numpy
         target = declared
 
     # ----- points
+    if not np.isfinite(lay.scale):  # its sign says integer or float data; its size scales integer data
+        raise InputError(f"damaged C3D file (POINT:SCALE is {lay.scale}, not a number a point can be scaled by)"
+                         f" — {_TO_USER}", spath)
     if engine == "auto":
         engine = "numpy"
     if engine == "ezc3d" and lay.processor == "mips":
