@@ -135,6 +135,27 @@ def test_c3d_whose_point_scale_is_not_a_number_is_refused(scale: float) -> None:
     assert not (TMP / "scale.bvh").exists()
 
 
+def test_c3d_with_a_signalling_nan_coordinate_reads_it_as_not_seen() -> None:
+    # found by the byte fuzz test below: a float32 signalling NaN in the data block raised a RuntimeWarning on
+    # its cast to float64 (exit 1)
+    F, P = 20, 3
+    rng = np.random.default_rng(1)
+    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
+    f = TMP / "snan.c3d"
+    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
+    b = bytearray(f.read_bytes())
+    start = (struct.unpack_from("<H", b, 16)[0] - 1) * 512  # header word 9: the data block's first 512-byte block
+    frame, point = 5, 1
+    struct.pack_into("<I", b, start + (frame * P + point) * 16, 0x7F800001)  # x of B in frame 5: a signalling NaN
+    f.write_bytes(bytes(b))
+    r = invoke("inspect", f)
+    assert r.exit_code == 0, r.stderr
+    from mocapskel.io.markers import read_markers
+
+    pts = read_markers(f).points
+    assert not np.isfinite(pts[frame, point]).all() and np.isfinite(np.delete(pts.reshape(F * P, 3), frame * P + point, 0)).all()
+
+
 @FUZZ
 @given(values=st.lists(st.tuples(st.integers(0, 2000), st.binary(min_size=1, max_size=4)), min_size=1, max_size=6))
 def test_c3d_with_generated_bytes_in_its_header_and_parameters(values) -> None:

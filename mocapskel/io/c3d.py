@@ -110,7 +110,8 @@ def _read_frames_numpy(path: str | os.PathLike, lay: C3DLayout, start: int, stop
         if lay.is_float and lay.processor == "dec":
             block = _decode_float32(np.ascontiguousarray(block).tobytes(), "dec").reshape(k, 4 * P)
         block = block.reshape(k, P, 4)
-        xyz[lo : lo + k] = block[..., :3]
+        with np.errstate(invalid="ignore"):  # a signalling NaN in float data: a coordinate not seen
+            xyz[lo : lo + k] = block[..., :3]
         residual[lo : lo + k] = block[..., 3]
 
     run_blocks(read_block, range(0, n, step))
