@@ -89,17 +89,25 @@ json_values = st.recursive(
 # --------------------------------------------------------------------------- C3D headers and parameters
 
 
+_GENUINE_FRAMES, _GENUINE_POINTS = 20, 3
+
+
+def _genuine_c3d(name: str, seed: int) -> tuple[Path, bytearray]:
+    """A small genuine float C3D (20 frames, points A, B, C, 100 Hz) in the fuzz folder, and its bytes to alter."""
+    rng = np.random.default_rng(seed)
+    F, P = _GENUINE_FRAMES, _GENUINE_POINTS
+    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
+    f = TMP / f"{name}.c3d"
+    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
+    return f, bytearray(f.read_bytes())
+
+
 @FUZZ
 @given(rate=odd_floats, scale=odd_floats, frames=st.integers(0, 65535), points=st.integers(0, 40),
        data=st.data())
 def test_c3d_with_generated_header_values(rate: float, scale: float, frames: int, points: int, data) -> None:
     """POINT:RATE/SCALE/USED/FRAMES and the header's words as generated, over a small genuine data block."""
-    F, P = 20, 3
-    rng = np.random.default_rng(0)
-    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
-    f = TMP / "gen.c3d"
-    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
-    b = bytearray(f.read_bytes())
+    f, b = _genuine_c3d("gen", seed=0)
     # header: word 2 points, words 4/5 first/last frame, float at 12 scale, float at 20 rate
     struct.pack_into("<H", b, 2, points)
     struct.pack_into("<H", b, 8, frames)
@@ -118,12 +126,7 @@ def test_c3d_with_generated_header_values(rate: float, scale: float, frames: int
 @pytest.mark.parametrize("scale", [float("inf"), float("-inf"), float("nan")])
 def test_c3d_whose_point_scale_is_not_a_number_is_refused(scale: float) -> None:
     # found by the test above: an infinite POINT:SCALE made integer data 0 x inf (exit 1, a RuntimeWarning)
-    F, P = 20, 3
-    rng = np.random.default_rng(0)
-    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
-    f = TMP / "scale.c3d"
-    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
-    b = bytearray(f.read_bytes())
+    f, b = _genuine_c3d("scale", seed=0)
     struct.pack_into("<f", b, 12, scale)
     i = b.find(b"SCALE", 512)
     struct.pack_into("<f", b, i + len(b"SCALE") + 2 + 2, scale)
@@ -138,12 +141,8 @@ def test_c3d_whose_point_scale_is_not_a_number_is_refused(scale: float) -> None:
 def test_c3d_with_a_signalling_nan_coordinate_reads_it_as_not_seen() -> None:
     # found by the byte fuzz test below: a float32 signalling NaN in the data block raised a RuntimeWarning on
     # its cast to float64 (exit 1)
-    F, P = 20, 3
-    rng = np.random.default_rng(1)
-    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
-    f = TMP / "snan.c3d"
-    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
-    b = bytearray(f.read_bytes())
+    f, b = _genuine_c3d("snan", seed=1)
+    F, P = _GENUINE_FRAMES, _GENUINE_POINTS
     start = (struct.unpack_from("<H", b, 16)[0] - 1) * 512  # header word 9: the data block's first 512-byte block
     frame, point = 5, 1
     struct.pack_into("<I", b, start + (frame * P + point) * 16, 0x7F800001)  # x of B in frame 5: a signalling NaN
@@ -159,12 +158,7 @@ def test_c3d_with_a_signalling_nan_coordinate_reads_it_as_not_seen() -> None:
 @FUZZ
 @given(values=st.lists(st.tuples(st.integers(0, 2000), st.binary(min_size=1, max_size=4)), min_size=1, max_size=6))
 def test_c3d_with_generated_bytes_in_its_header_and_parameters(values) -> None:
-    F, P = 20, 3
-    rng = np.random.default_rng(1)
-    vals = np.concatenate([rng.normal(size=(F, P, 3)) * 300 + 1000, np.zeros((F, P, 1))], axis=2)
-    f = TMP / "bytes.c3d"
-    raw_c3d(f, vals, ["A", "B", "C"], rate=100.0, scale=-1.0)
-    b = bytearray(f.read_bytes())
+    f, b = _genuine_c3d("bytes", seed=1)
     for pos, chunk in values:
         pos = pos % (len(b) - len(chunk))
         b[pos:pos + len(chunk)] = chunk
