@@ -9,7 +9,7 @@ import numpy as np
 
 from ...artifacts import Skeleton
 from ..joints.hinges import _hinge_direction, _relative_rotations
-from ..joint_moves import _move_joint, _with_moves
+from ..joint_moves import _move_joint, _weighed, _with_moves
 from ..rest_pose import _bone_line, _rest_markers
 from ..rotations import segments_seen
 
@@ -147,10 +147,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
             m = on[0]
             inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
             shift = t[m] + inward * r
-        if share is not None:  # the posterior mean along the axis: the prior's share of the way
-            shift *= share(int(c), ax)
-            if abs(shift) < 0.05:
-                continue
+        if share is not None and not (shift := _weighed(shift, share, c, ax)):
+            continue
         origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
         moved[skel.names[c]] = round(float(abs(shift)), 1)
     if not moved:

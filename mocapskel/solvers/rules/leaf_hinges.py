@@ -8,7 +8,7 @@ import numpy as np
 
 from ...artifacts import Skeleton
 from ..joints.hinges import _hinge_axes, _hinge_direction, _relative_rotations, _relative_rotvecs
-from ..joint_moves import _move_joint, _pose_ms, _with_moves
+from ..joint_moves import _move_joint, _pose_ms, _weighed, _with_moves
 from ..rest_pose import _bone_line, _rest_markers
 from ..rotations import segments_seen
 
@@ -116,20 +116,17 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         over = np.flatnonzero(off <= 0.5 * dc)
         if over.size and abs(float(t[over[np.argmin(off[over])]])) >= abs(shift):
             continue  # already inside the limb: farther from its skin marker than from the child's middle
-        if share is not None:  # the posterior mean along the axis: the prior's share of the way
-            shift *= share(int(c), ax)
-            if abs(shift) < 0.05:
-                continue
-            origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
-            moved[skel.names[c]] = round(abs(shift), 1)
+        if share is not None and not (shift := _weighed(shift, share, c, ax)):
             continue
         o2, l2 = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
-        if base is None:
-            base = _pose_ms(skel, origin, local, pts)
-        ms = _pose_ms(skel, o2, l2, pts)
-        if ms - base > seen:
-            continue  # the markers see the move: they fix the centre along the axis
-        origin, local, base = o2, l2, ms
+        if share is None:
+            if base is None:
+                base = _pose_ms(skel, origin, local, pts)
+            ms = _pose_ms(skel, o2, l2, pts)
+            if ms - base > seen:
+                continue  # the markers see the move: they fix the centre along the axis
+            base = ms
+        origin, local = o2, l2
         moved[skel.names[c]] = round(abs(shift), 1)
     if not moved:
         return skel
