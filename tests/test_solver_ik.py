@@ -562,3 +562,29 @@ def test_segment_poses_match_kabsch():
     assert np.isnan(R[:5, 1]).all() and np.isfinite(R[:, 0]).any()
 
 
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_tolerance_bounds_what_the_pose_still_moves(seed):
+    """With tol = 0.1 mm (the IK stage's), every marker and joint of the solved poses lies within 0.1 mm
+    of where the fully converged solution puts it, from a start a few degrees off, with 1 mm noise."""
+    rng = np.random.default_rng(300 + seed)
+    S = int(rng.integers(6, 16))
+
+    def n_markers(s, leaf, parent_count):
+        return int(rng.integers(3, 5)) if s == 0 else int(rng.integers(2, 5))
+
+    parent, origin, seg, loc = make_tree(rng, S, seed % 2 == 0, n_markers)
+    F = 400
+    R, root = make_motion(rng, F, S)
+    _, x = forward(parent, origin, seg, loc, R, root)
+    x = x + rng.normal(0.0, 1.0, x.shape)
+    start = perturb(rng, R, 2, 6)
+    loose = solve_ik(parent, origin, seg, loc, x, init_rot=start, tol=0.1)
+    tight = solve_ik(parent, origin, seg, loc, x, init_rot=start, tol=1e-9, iterations=50)
+    assert tight.converged.all() and loose.converged.all()
+    Pa, xa = forward(parent, origin, seg, loc, loose.rot, loose.root_pos)
+    Pb, xb = forward(parent, origin, seg, loc, tight.rot, tight.root_pos)
+    assert np.linalg.norm(xa - xb, axis=-1).max() < 0.1
+    assert np.linalg.norm(Pa - Pb, axis=-1).max() < 0.1
+    assert loose.n_iter < tight.n_iter

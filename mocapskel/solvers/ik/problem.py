@@ -112,6 +112,15 @@ class _Model:
         off[:, 1:] = (origin[1:] - origin[tree.par[1:]]).T
         self.off = off
 
+    def reach(self, scale: float) -> np.ndarray:
+        """(S,) how far a turn of each segment moves what it carries: the farthest of its markers and
+        its children's origins from its own origin; ``scale`` for a segment that carries neither."""
+        S = self.t.S
+        r = np.sqrt((self.lp**2).sum(1)).max(0)
+        bone = np.sqrt((self.off**2).sum(0))
+        np.maximum.at(r, self.t.par[1:], bone[1:])
+        return np.where(r > 0, r, scale)
+
     # ---- layout
     def planes(self, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Observations (F, M, 3) and weights (F, M) -> slots (K, 3, S, F) and (K, S, F)."""

@@ -160,8 +160,10 @@ def solve_ik(
         A frame has converged (and leaves the iteration) when its pose is
         estimated to be within ``tol`` mm of the solution, or when the
         linearised model can no longer lower its cost. A step's size is how
-        far it moves the skeleton (the root position's change, or a rotation's
-        change times the skeleton's extent); the distance left is estimated as
+        far it moves what the skeleton carries: the largest, over segments, of
+        its origin's change plus its rotation's change times its reach (the
+        farthest of its markers and children's joints from its origin; the
+        skeleton's extent for a segment that carries neither); the distance left is estimated as
         the next step's size: the last step times the ratio of the last two
         (Gauss-Newton converges linearly, fast here), or after a first or
         rejected step the step itself. With a motion-capture start (a few
@@ -269,7 +271,7 @@ def solve_ik(
         if p0.shape != (F, 3) or not np.isfinite(p0).all():
             raise ValueError(f"init_root must be finite, ({F}, 3)")
 
-    # length scale for the convergence test: the skeleton's extent
+    # length scale: the skeleton's extent (the reach of a segment that carries nothing; the 3x3 blocks' floor)
     pts = np.concatenate([model.origin, model.origin[seg] + model.local])
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
     floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
@@ -339,6 +341,7 @@ def _iterate(
     so that its rounding is that of the change, not of the cost.
     """
     n = p.shape[-1]
+    reach = model.reach(scale)
     RpT = np.ascontiguousarray(R_prior.transpose(1, 0, 2, 3))
     W, lbar, ybar, Cc = st["W"], st["lbar"], st["ybar"], st["Cc"]
     G, P = model.fk(p, R)
@@ -373,7 +376,8 @@ def _iterate(
         dc = (W * _c_dot(dd, 2 * d + dd) - 2 * np.einsum("ijsf,ijsf->sf", dR, Cc) + pw * _c_dot(e2 - e, e2 + e)).sum(0)
         eps = 1e-12 * np.maximum(cost, 0.0) + 1e-18  # the rounding level of the cost
         ok = dc <= eps
-        step = np.sqrt(np.maximum(_c_dot(dp, dp), scale**2 * _c_dot(dr, dr).max(0)))
+        # how far the step moves what the skeleton carries: every segment's origin, plus its turn times its reach
+        step = (np.sqrt(_c_dot(dP, dP)) + reach[:, None] * np.sqrt(_c_dot(dr, dr))).max(0)
         # the distance left to the solution: about the next step, i.e. this one times the rate
         # at which the (accepted) steps shrink; without a rate, the step itself
         left = np.where(ok & (last < np.inf), step * np.minimum(1.0, step / np.maximum(last, 1e-300)), step)
