@@ -265,11 +265,11 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))))
+    d2 = _prior_d2(res.prior_residual, sig)
+    here = np.isfinite(d2)
     if nu > 0:
         # the Student-t's: its factors' weighted squares out of the objective, each factor's -log density
         # (nu + 3) / 2 log(1 + d^2 / nu) in (its constant in nu is common to every start)
-        d2 = _prior_d2(res.prior_residual, sig)
-        here = np.isfinite(d2)
         weighted = float(np.sum((w * factor)[here] * np.sum(res.prior_residual**2, axis=-1)[here]))
         nlp += -weighted / (2.0 * inflate * sn**2) + 0.5 * (nu + 3.0) * float(np.sum(np.log1p(d2[here] / nu)))
     info = dict(start.info)
@@ -278,6 +278,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                        "prior_scale": scale, "neg_log_posterior": nlp, "prior_nu": nu, "prior_rounds": rounds,
                        "prior_weight_factor": {start.names[k]: [float(x) for x in factor[k]] for k in range(len(start.names))
                                                if start.parent[k] >= 0},
+                       "prior_d2": {start.names[k]: [float(x) for x in d2[k]] for k in range(len(start.names))
+                                    if start.parent[k] >= 0},
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
