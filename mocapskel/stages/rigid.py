@@ -133,7 +133,9 @@ class Params:
     prior_nu: float = 0.0
     """With ``joint_model="map"``: each joint's prior factor a Student-t of this many degrees of freedom, of
     the same sigma (heavy-tailed: it holds like the Gaussian near its mean, and lets go of a joint the data
-    place far from it); 0: the Gaussian."""
+    place far from it); 0: the Gaussian. Measured at nu = 4: no better on the generated checking seeds nor on
+    the real references (BENCHMARKS, "A heavy-tailed prior"): the data's pull along a hinge's axis is skin
+    motion, and the heavy tail lets it win."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""

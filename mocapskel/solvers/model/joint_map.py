@@ -35,6 +35,13 @@ markers' residuals in their segments' frames, measured from the take (:func:`res
 Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
 differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
+Heavy tails (optional, ``nu`` > 0): each joint's prior factor a Student-t of ``nu`` degrees of freedom and
+the same sigma, -log density (nu + 3) / 2 log(1 + d^2 / nu), d^2 = |joint_cs - mean_cs|^2 / sigma_cs^2: near
+its mean it holds like the Gaussian, while a joint the data place many sigmas from it (a mean the joints
+stage got wrong) is held less and less. Solved by iteratively reweighted least squares: the Gaussian's fit,
+then each factor's weight times (nu + 3) / (nu + d^2) at the last fit and the fit again from there, until no
+weight changes by more than :data:`IRLS_TOL` (at most :data:`IRLS_ROUNDS` rounds).
+
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
 posterior is kept.
