@@ -36,13 +36,10 @@ REALDATA = REPO.parent / "shared" / "realdata"
 REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "ezc3d/Qualisys.c3d")
 
 
-#: each model variant's data term weight, prior mean, like bones' sigma and the prior's degrees of freedom
-#: (``rigid.Params.data_weight``, ``prior_mean``, ``bone_sigma``, ``prior_nu``; nu 0: Gaussian)
-WEIGHTS = {"map": ("frames", "deepened", 0.0, 0.0), "map-eff": ("effective", "deepened", 0.0, 0.0),
-           "map-eff-start": ("effective", "start", 0.0, 0.0), "map-eff-like": ("effective", "deepened", 0.03, 0.0),
-           "map-like": ("frames", "deepened", 0.03, 0.0),
-           "map-t1": ("frames", "deepened", 0.0, 1.0), "map-t4": ("frames", "deepened", 0.0, 4.0),
-           "map-eff-t1": ("effective", "deepened", 0.0, 1.0), "map-eff-t4": ("effective", "deepened", 0.0, 4.0)}
+#: each model variant's data term weight and prior mean (``rigid.Params.data_weight``, ``prior_mean``)
+WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepened", 0.0),
+           "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03),
+           "map-like": ("frames", "deepened", 0.03)}
 #: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
 ABLATIONS = {
     "rules": {},
@@ -66,9 +63,8 @@ def _rigid(mode: str, scale: float):
 
     if mode in ABLATIONS:
         return rigid.Params(joint_model="rules", **ABLATIONS[mode])
-    w, mean, bone, nu = WEIGHTS[mode]
-    return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone,
-                        prior_nu=nu)
+    w, mean, bone = WEIGHTS[mode]
+    return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone)
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
@@ -234,8 +230,6 @@ def main() -> None:
                     help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
                          "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
                          "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs); "
-                         "map-t1, map-t4 / map-eff-t1, map-eff-t4: as map / map-eff, each joint's prior a Student-t "
-                         "of 1 or 4 degrees of freedom; "
                          "no-mirror, no-depth, no-leaf, no-hinge-hold, no-held-fit, no-moves: the rules path without "
                          "that move (no-moves: without any); evidence: the depth and leaf moves weighed against the data")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")

@@ -130,12 +130,6 @@ class Params:
     bone_sigma: float = 0.0
     """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
     of their length (a Gaussian factor per pair; 0: no such factor)."""
-    prior_nu: float = 0.0
-    """With ``joint_model="map"``: each joint's prior factor a Student-t of this many degrees of freedom, of
-    the same sigma (heavy-tailed: it holds like the Gaussian near its mean, and lets go of a joint the data
-    place far from it); 0: the Gaussian. Measured at nu = 4: no better on the generated checking seeds nor on
-    the real references (BENCHMARKS, "A heavy-tailed prior"): the data's pull along a hinge's axis is skin
-    motion, and the heavy tail lets it win."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -346,7 +340,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma, nu=params.prior_nu)
+                         bone_sigma=params.bone_sigma)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

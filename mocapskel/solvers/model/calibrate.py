@@ -52,11 +52,6 @@ class CalibrationResult:
     rms : (2,) marker rms (mm) before and after
     n_iter : iterations run
     objective : the minimised cost at the end (mm^2): squared marker residuals plus the weighted priors
-    gauge : (S, 3, 3) the segments' rotations at the reference frame in the fit's frames, taken out of the
-        offsets by the gauge fix (a vector v of segment s in the fit's frames is gauge[s] @ v in the result's)
-    prior_residual : (S, 2, 3) with ``prior_weights``: child c's joint relative to its parent's marker centroid
-        ([c, 0]) and its own ([c, 1]) less the same for the anchor, in the fit's frames (unweighted: the
-        residual of the prior's factor); NaN where the segment has no marker in the fit. None otherwise.
     """
 
     origin: np.ndarray
@@ -66,8 +61,6 @@ class CalibrationResult:
     rms: tuple[float, float]
     n_iter: int
     objective: float = float("nan")
-    gauge: np.ndarray | None = None
-    prior_residual: np.ndarray | None = None
 
 
 def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
@@ -598,15 +591,6 @@ def refine_skeleton(
         p, R, d, l, cost, it = iterate(1)
     objective = float(cost)
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
-    prior_residual = None
-    if prior_weights is not None:
-        blocks = _prior_blocks(pr, parent)
-        prior_residual = np.full((S, 2, 3), np.nan)
-        if blocks:
-            A1 = _joint_prior_operator(pr, parent)
-            r = (A1 @ (_pack(pr, d, l) - g0)).reshape(-1, 3)
-            for (c, j), v in zip(blocks, r):
-                prior_residual[c, j] = v
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
     R = R @ np.swapaxes(Q, -1, -2)[None]
@@ -631,7 +615,6 @@ def refine_skeleton(
     return CalibrationResult(
         origin=new_origin, marker_local=l, rot=R, root_pos=p,
         rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it, objective=objective,
-        gauge=Q, prior_residual=prior_residual,
     )
 
 
@@ -643,17 +626,6 @@ def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     for m in pr.used:
         g[pr.gl[int(m)] : pr.gl[int(m)] + 3] = l[m]
     return g
-
-
-def _prior_blocks(pr: _Problem, parent: np.ndarray) -> list[tuple[int, int]]:
-    """(c, j) of every block of three rows of :func:`_joint_prior_operator` (unweighted, all joints), in its
-    order: child c's joint in its parent's frame (j = 0) or its own (j = 1), where that segment has markers."""
-    out = []
-    for c in pr.kids:
-        for j, s in enumerate((int(parent[c]), c)):
-            if any(pr.seg[int(m)] == s for m in pr.used):
-                out.append((int(c), j))
-    return out
 
 
 def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None,

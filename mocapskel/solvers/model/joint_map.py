@@ -35,13 +35,6 @@ markers' residuals in their segments' frames, measured from the take (:func:`res
 Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
 differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
-Heavy tails (optional, ``nu`` > 0): each joint's prior factor a Student-t of ``nu`` degrees of freedom and
-the same sigma, -log density (nu + 3) / 2 log(1 + d^2 / nu), d^2 = |joint_cs - mean_cs|^2 / sigma_cs^2: near
-its mean it holds like the Gaussian, while a joint the data place many sigmas from it (a mean the joints
-stage got wrong) is held less and less. Solved by iteratively reweighted least squares: the Gaussian's fit,
-then each factor's weight times (nu + 3) / (nu + d^2) at the last fit and the fit again from there, until no
-weight changes by more than :data:`IRLS_TOL` (at most :data:`IRLS_ROUNDS` rounds).
-
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
 posterior is kept.
@@ -53,7 +46,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...artifacts import Skeleton
-from ...model.tree import depth_first_order, like_subtrees, subtree_shape
+from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import refine_skeleton
 from ..rules.deepen import deepen_joints
 from ..ik.motion import _centres_by_edges, solve
@@ -177,44 +170,9 @@ def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
     return out
 
 
-#: Most reweighting rounds of the Student-t prior, and the relative change of every weight below which it stops.
-IRLS_ROUNDS, IRLS_TOL = 5, 0.01
-
-
-def student_t_weights(d2: np.ndarray, nu: float) -> np.ndarray:
-    """The weight factor (nu + 3) / (nu + d^2) of a 3-D Student-t factor of ``nu`` degrees of freedom whose
-    residual is d^2 (squared, in units of its sigma) at the current estimate, against the Gaussian's 1: the
-    Gaussian's near its mean (d^2 of about 3, the Student-t's expectation), fading as 1 / d^2 far from it, so
-    that a mean the data clearly contradict stops holding the joint. 1 where d^2 is NaN (no factor)."""
-    d2 = np.asarray(d2, dtype=float)
-    return np.where(np.isfinite(d2), (nu + 3.0) / (nu + np.where(np.isfinite(d2), d2, 0.0)), 1.0)
-
-
-def _prior_d2(residual: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """(S, 2) each prior factor's squared residual (``refine_skeleton``'s ``prior_residual``, (S, 2, 3)) over
-    its sigma squared; NaN where there is no factor."""
-    return np.sum(residual**2, axis=-1) / sig**2
-
-
-def _rotated(parent: np.ndarray, seg: np.ndarray, origin: np.ndarray, local: np.ndarray,
-             gauge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(origin, marker_local) with every segment's offsets turned by its rotation in ``gauge`` (S, 3, 3), as
-    ``refine_skeleton``'s gauge fix turns them: the prior's mean in the frames of a refined skeleton."""
-    parent = np.asarray(parent)
-    seg = np.asarray(seg)
-    out = np.array(origin, dtype=float)
-    for c in depth_first_order(parent):
-        if parent[c] >= 0:
-            out[c] = out[parent[c]] + gauge[parent[c]] @ (origin[c] - origin[parent[c]])
-    loc = np.array(local, dtype=float)
-    on = seg >= 0
-    loc[on] = np.einsum("mij,mj->mi", gauge[seg[on]], local[on])
-    return out, loc
-
-
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
-               bone_sigma: float = 0.0, nu: float = 0.0) -> Skeleton:
+               bone_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -222,9 +180,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     refinement's n frames count as :func:`effective_frames` n_eff independent ones: the data term is
     scaled by n_eff / n (the prior's weights by n / n_eff). With ``bone_sigma`` > 0, like limbs' bones
     (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
-    length at the start: one more factor each. With ``nu`` > 0 each joint's prior factor is a Student-t of
-    ``nu`` degrees of freedom (:func:`student_t_weights`) instead of the Gaussian, solved by iteratively
-    reweighted least squares."""
+    length at the start: one more factor each."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -251,42 +207,13 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties)
-    factor, rounds = np.ones_like(w), 0
-    if nu > 0:
-        # iteratively reweighted least squares: each round refines from the last, the prior's mean taken
-        # into the frames the last round's result is in (its gauge), until the weights settle
-        anchor = _rotated(start.parent, start.marker_segment, centre.origin, centre.marker_local, res.gauge)
-        for rounds in range(1, IRLS_ROUNDS + 1):
-            new = student_t_weights(_prior_d2(res.prior_residual, sig), nu)
-            if np.max(np.abs(new - factor) / factor) < IRLS_TOL:
-                rounds -= 1
-                break
-            factor = new
-            prev = res
-            res = refine_skeleton(start.parent, prev.origin, start.marker_segment, prev.marker_local, pts[use],
-                                  prev.rot, prev.root_pos, ref_frame=ref, iterations=iterations,
-                                  prior_weights=w * factor, anchor=anchor, like_bones=ties)
-            # the new result's gauge is the identity (the warm start's poses are at the reference frame)
-            # up to rounding: the prior's mean follows it all the same
-            anchor = _rotated(start.parent, start.marker_segment, *anchor, res.gauge)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))))
-    d2 = _prior_d2(res.prior_residual, sig)
-    here = np.isfinite(d2)
-    if nu > 0:
-        # the Student-t's: its factors' weighted squares out of the objective, each factor's -log density
-        # (nu + 3) / 2 log(1 + d^2 / nu) in (its constant in nu is common to every start)
-        weighted = float(np.sum((w * factor)[here] * np.sum(res.prior_residual**2, axis=-1)[here]))
-        nlp += -weighted / (2.0 * inflate * sn**2) + 0.5 * (nu + 3.0) * float(np.sum(np.log1p(d2[here] / nu)))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
-                       "prior_scale": scale, "neg_log_posterior": nlp, "prior_nu": nu, "prior_rounds": rounds,
-                       "prior_weight_factor": {start.names[k]: [float(x) for x in factor[k]] for k in range(len(start.names))
-                                               if start.parent[k] >= 0},
-                       "prior_d2": {start.names[k]: [float(x) for x in d2[k]] for k in range(len(start.names))
-                                    if start.parent[k] >= 0},
+                       "prior_scale": scale, "neg_log_posterior": nlp,
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
