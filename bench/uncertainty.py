@@ -6,8 +6,9 @@
     python -m bench.uncertainty real TAKE ...
 
 coverage: generated human range-of-motion takes (seeded), fitted to the rigid stage; each joint's error
-relative to its child segment's markers (the fitted joint carried into every frame by the best-fit
-motion of the child's fitted markers onto the observed ones, against the true joint, averaged over the
+relative to the markers it is measured against (its child's, or its parent's where only those make a
+frame; the fitted joint carried into every frame by the best-fit motion of those fitted markers onto the
+observed ones, against the true joint, averaged over the
 frames and turned back to the rest frame's axes) against the reported posterior covariance: the share
 of joints whose error falls inside the 95 % region (chi-square, 3 dof), the median radius of that
 region along its largest axis and the median error. Measured at the model's MAP (the refinement
@@ -58,7 +59,8 @@ def _kabsch(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def joint_errors(skel, truth, unc: dict) -> list[tuple[float, float, float]]:
-    """Per joint with 3+ markers on its child: (Mahalanobis d^2, |error| mm, 95 % radius along its largest axis)."""
+    """Per joint measured against a segment of 3+ markers (its child's, or its parent's where the report
+    says so: ``frame``): (Mahalanobis d^2, |error| mm, 95 % radius along its largest axis)."""
     pts = skel.joints.topology.segments.markers.points
     smap = segment_map(skel.marker_segment, truth)
     out = []
@@ -69,10 +71,11 @@ def joint_errors(skel, truth, unc: dict) -> list[tuple[float, float, float]]:
             continue
         tc, tp = smap[int(c)], smap[p]
         j = [k for k, ch in enumerate(truth.joint_child) if {int(ch), int(truth.parent[ch])} == {tc, tp}]
-        ms = np.flatnonzero(skel.marker_segment == c)
+        f = skel.names.index(u.get("frame", skel.names[c]))  # the segment the joint is measured against
+        ms = np.flatnonzero(skel.marker_segment == f)
         if len(j) != 1 or ms.size < 3:
             continue
-        X = skel.origin[c] + skel.marker_local[ms]
+        X = skel.origin[f] + skel.marker_local[ms]
         seen = np.isfinite(pts[:, ms]).all((1, 2)) & np.isfinite(truth.joints[:, j[0]]).all(1)
         R, t = _kabsch(X, pts[seen][:, ms])
         fitted = np.einsum("fij,j->fi", R, skel.origin[c]) + t

@@ -240,3 +240,30 @@ def test_frames_count_as_the_independent_observations_they_are_worth(monkeypatch
     every = um.skeleton_uncertainty(skin)["joints"]
     ratios = [min(j["sd_mm"]) / min(every[n]["sd_mm"]) for n, j in skin.info["uncertainty"]["joints"].items()]
     assert abs(np.median(ratios) - np.sqrt(k_skin)) < 0.15 * np.sqrt(k_skin)
+
+
+def test_a_joint_of_a_two_marker_child_is_measured_against_its_parents_markers():
+    """A realistic range of motion (cmu41 markers, skin motion), the true grouping and tree: hips and
+    shoulders join a thigh or upper arm of two markers to a pelvis or thorax of four or more. Two markers
+    make no frame (the segment's twist about them is a convention, and the joint's place about their line
+    turns with it), so those joints are measured against the parent's markers, where a range of motion
+    places them: none is left to the prior (against the child's two markers, three of the four were)."""
+    from mocapskel import evaluate
+    from mocapskel.synth.presets import make, realistic
+
+    take = make(realistic(seed=1, frames=600, motion="rom", markerset="cmu41"))
+    clean = pipeline.run_until(take.markers, "clean").artifact
+    sk = pipeline.run_until(evaluate.true_topology(take.truth, clean), "rigid").artifact
+    count = np.bincount(sk.marker_segment[sk.marker_segment >= 0], minlength=len(sk.names))
+    checked = 0
+    for name, u in sk.info["uncertainty"]["joints"].items():
+        c = sk.names.index(name)
+        p = int(sk.parent[c])
+        if count[c] == 2 and count[p] >= 4:
+            assert u["frame"] == sk.names[p] and u["frame_markers"] == 3, (name, u)
+            assert not u["set_by_prior"], (name, u)
+            assert max(u["sd_mm"]) < 40.0, (name, u["sd_mm"])
+            checked += 1
+        elif count[c] >= 3:
+            assert u["frame"] == name
+    assert checked == 4

@@ -30,9 +30,12 @@ refinement holds them) and the root's origin fixed by one of its joints; neither
 quantity reported, which does not depend on the gauge: each joint's position relative to the
 best-fit frame of its child segment's markers (origin at their centroid, turned with them; to first
 order, the markers' offsets less their mean translation and their least-squares rotation about the
-centroid). A child of two markers has no turn about the line through them: there that turn is the
-segment's own at the rest frame; a child of one marker: the segment's turn at the rest frame, and
-the origin at the marker. Directions are in the lab's axes at the rest frame.
+centroid). A child of one or two markers makes no such frame (two have no turn about the line through
+them, and the joint's place about that line turns with the segment's twist, a convention): its joint is
+measured against its parent's markers when those make a frame. Where neither does, against the child's:
+a turn two markers do not define is the segment's own at the rest frame; a child of one marker: the
+segment's turn at the rest frame, and the origin at the marker. Directions are in the lab's axes at the
+rest frame.
 
 The prior: an isotropic Gaussian on that position, centred where the fit put it, of standard
 deviation ``prior_scale`` times the child segment's size (the largest distance between two of its
@@ -93,12 +96,14 @@ class JointUncertainty:
     """The uncertainty of every joint (arrays over the joints, by child segment ``kids``).
 
     kids : (K,) child segment of each joint.
-    cov : (K, 3, 3) posterior covariance (mm^2) of the joint relative to its child's markers, lab axes at rest.
+    cov : (K, 3, 3) posterior covariance (mm^2) of the joint relative to the markers of ``frame``, lab axes at rest.
     sd : (K, 3) standard deviations (mm) along the principal directions, largest first.
     directions : (K, 3, 3) the principal directions (rows, unit), in the order of ``sd``.
     prior_share : (K, 3) the prior's share of the posterior precision along each direction.
     prior_sd : (K,) the prior's standard deviation (mm).
-    frame_markers : (K,) markers of the child that define its frame (3 means three or more, not on a line).
+    frame : (K,) the segment whose markers the joint is measured against (:func:`_frame_segment`): its
+        child, or its parent where only the parent's markers make a frame.
+    frame_markers : (K,) markers of that segment that define its frame (3 means three or more, not on a line).
     turned_about : (K, 3) the main axis of the joint's relative rotations (lab axes at rest), NaN if unknown.
     lacks_axis : (K, 3) the axis a turn about which would place the joint along ``directions[:, 0]``.
     noise_sd : the take's noise (mm per coordinate) from the fit's residual; dof its degrees of freedom.
@@ -111,6 +116,7 @@ class JointUncertainty:
     directions: np.ndarray
     prior_share: np.ndarray
     prior_sd: np.ndarray
+    frame: np.ndarray
     frame_markers: np.ndarray
     turned_about: np.ndarray
     lacks_axis: np.ndarray
@@ -146,30 +152,60 @@ def segment_sizes(parent: np.ndarray, origin: np.ndarray, marker_segment: np.nda
     return out
 
 
-def _joint_operator(pr: _Problem, local: np.ndarray, c: int) -> tuple[np.ndarray, int]:
-    """(3, ng) first-order map from the constant unknowns to joint ``c``'s position relative to the
-    best-fit frame of its child's markers (see the module docstring), and how many markers define
-    that frame's turn (0, 1, 2 or 3)."""
-    ms = [int(m) for m in pr.used if pr.seg[m] == c]
-    A = np.zeros((3, pr.ng))
+def _marker_frame(pr: _Problem, local: np.ndarray, s: int) -> tuple[list[int], np.ndarray, np.ndarray, int]:
+    """Segment ``s``'s markers' best-fit frame to first order: (its markers, their centroid at rest, ``Bp``
+    (3, 3n): their moves to the frame's small turn, none about a line they lie on), and how many markers
+    define that turn (0, 1, 2 or 3: three or more not on a line)."""
+    ms = [int(m) for m in pr.used if pr.seg[m] == s]
     if not ms:
-        return A, 0
+        return ms, np.zeros(3), np.zeros((3, 0)), 0
     L = local[ms]
     cbar = L.mean(0)
     r = L - cbar
     # the markers' small turn w moves marker m by w x r_m = -hat(r_m) w
-    B = np.zeros((3 * len(ms), 3))
-    B[:, :] = -_hat(r).reshape(-1, 3)
+    B = -_hat(r).reshape(-1, 3)
     sv = np.linalg.svd(B, compute_uv=False) if len(ms) > 1 else np.zeros(3)
     rank = int((sv > _LINE_RCOND * max(sv[0], 1e-300)).sum()) if len(ms) > 1 else 0
     Bp = np.linalg.pinv(B, rcond=_LINE_RCOND) if len(ms) > 1 else np.zeros((3, 3 * len(ms)))
-    # the joint sits at the segment's origin (0): relative to the markers' frame it moves by
-    # -t - w x (0 - cbar) = -t - hat(cbar) w, with t their mean move and w = B^+ (their moves)
+    return ms, cbar, Bp, (3 if rank >= 3 else len(ms) if len(ms) < 3 else 2)
+
+
+def _frame_segment(pr: _Problem, local: np.ndarray, c: int) -> int:
+    """The segment whose markers joint ``c`` is measured against: its child when the child's markers make
+    a frame (three or more, not on a line), else its parent when the parent's do, else the child. Against
+    a child of one or two markers the joint's turn about them is no quantity of the skeleton's (the
+    segment's twist about its markers is a convention, and the joint's place about them with it), so
+    that the data, which place the joint from the parent's side, would seem to leave it to the prior."""
+    if _marker_frame(pr, local, c)[3] < 3:
+        p = int(pr.parent[c])
+        if _marker_frame(pr, local, p)[3] == 3:
+            return p
+    return c
+
+
+def _joint_operator(pr: _Problem, local: np.ndarray, c: int, s: int | None = None,
+                    bone: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """(3, ng) first-order map from the constant unknowns to joint ``c``'s position relative to the
+    best-fit frame of segment ``s``'s markers (its child ``c``, by default, or its parent, where the joint
+    sits at ``bone``, its offset from the parent's origin; see the module docstring), and how many markers
+    define that frame's turn (0, 1, 2 or 3)."""
+    s = c if s is None else int(s)
+    ms, cbar, Bp, n = _marker_frame(pr, local, s)
+    A = np.zeros((3, pr.ng))
+    if not ms:
+        return A, 0
+    # the joint sits at P in s's frame (the child's origin, 0; in the parent's, its bone offset d_c);
+    # relative to the markers' frame it moves by dP - t + hat(P - cbar) w, with t their mean move and
+    # w = Bp (their moves)
+    P = np.zeros(3)
+    if s != c:
+        P = np.asarray(bone, dtype=float)
+        A[:, pr.gi[c] : pr.gi[c] + 3] = np.eye(3)
     T = np.tile(np.eye(3), (1, len(ms))) / len(ms)
-    J = -T - _hat(cbar) @ Bp
+    J = -T + _hat(P - cbar) @ Bp
     cols = np.concatenate([np.arange(pr.gl[m], pr.gl[m] + 3) for m in ms])
-    A[:, cols] = J
-    return A, (3 if rank >= 3 else len(ms) if len(ms) < 3 else 2)
+    A[:, cols] += J
+    return A, n
 
 
 def _gauge_fixed(pr: _Problem) -> np.ndarray:
@@ -374,7 +410,8 @@ def joint_uncertainty(
     K = kids.size
     size = segment_sizes(parent, origin, marker_segment, marker_local)
     prior_sd = np.maximum(prior_scale * size[kids], 1.0)
-    ops = [_joint_operator(pr, l, int(c)) for c in kids]
+    frame = np.array([_frame_segment(pr, l, int(c)) for c in kids], dtype=int)
+    ops = [_joint_operator(pr, l, int(c), int(f), d[c]) for c, f in zip(kids, frame)]
     A = np.concatenate([a for a, _ in ops])  # (3K, ng)
     P = (A.T / np.repeat(prior_sd, 3) ** 2) @ A  # the prior's precision over the constant unknowns
     s2p = s2 * max(float(frames_per_independent), 1.0)  # the variance the data's precision is in units of
@@ -426,7 +463,7 @@ def joint_uncertainty(
     turned, lacks = _axes(pr, R, l, kids, directions[:, 0])
     return JointUncertainty(
         kids=kids, cov=cov, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
-        frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
+        frame=frame, frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
         noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]),
     )
 
@@ -469,7 +506,7 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     ``skel``, from the refinement's. Keys: ``prior`` (its scale and the threshold of ``set_by_prior``),
     ``noise_mm`` and ``dof`` (the take's noise from the fit's residual), ``frames``, ``seconds`` and
     ``joints``: {child segment name: {sd_mm, directions, prior_share, prior_sd_mm, set_by_prior,
-    frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
+    frame, frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
     rest frame; ``lacks_rotation_about`` None unless set by the prior).
     """
     t = time.perf_counter()
@@ -497,6 +534,7 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
             "prior_share": [round(float(x), 4) for x in u.prior_share[k]],
             "prior_sd_mm": round(float(u.prior_sd[k]), 1),
             "set_by_prior": prior_set,
+            "frame": skel.names[int(u.frame[k])],
             "frame_markers": int(u.frame_markers[k]),
             "turned_about": None if not np.isfinite(u.turned_about[k]).all() else np.round(u.turned_about[k], 4).tolist(),
             "lacks_rotation_about": np.round(u.lacks_axis[k], 4).tolist() if prior_set else None,
