@@ -247,7 +247,8 @@ def test_a_joint_of_a_two_marker_child_is_measured_against_its_parents_markers()
     shoulders join a thigh or upper arm of two markers to a pelvis or thorax of four or more. Two markers
     make no frame (the segment's twist about them is a convention, and the joint's place about their line
     turns with it), so those joints are measured against the parent's markers, where a range of motion
-    places them: none is left to the prior (against the child's two markers, three of the four were)."""
+    places them: none is left to the prior (against the child's two markers, three of the four were). The
+    knees join a thigh and a shank of two markers each: measured against the shank's markers and its ankle."""
     from mocapskel import evaluate
     from mocapskel.synth.presets import make, realistic
 
@@ -266,4 +267,10 @@ def test_a_joint_of_a_two_marker_child_is_measured_against_its_parents_markers()
             checked += 1
         elif count[c] >= 3:
             assert u["frame"] == name
-    assert checked == 4
+        elif count[c] == 2 and count[p] == 2 and (sk.parent == c).any():
+            # a knee between a thigh and a shank of two markers each: against the shank's markers and its
+            # ankle, which make a frame; the prior sets at most the hinge's axis
+            assert u["frame"] == name and u["frame_markers"] == 3, (name, u)
+            assert sum(x > unc_mod.SET_BY_PRIOR for x in u["prior_share"]) <= 1, (name, u)
+            checked += 1
+    assert checked == 6

@@ -32,9 +32,10 @@ best-fit frame of its child segment's markers (origin at their centroid, turned 
 order, the markers' offsets less their mean translation and their least-squares rotation about the
 centroid). A child of one or two markers makes no such frame (two have no turn about the line through
 them, and the joint's place about that line turns with the segment's twist, a convention): its joint is
-measured against its parent's markers when those make a frame. Where neither does, against the child's:
-a turn two markers do not define is the segment's own at the rest frame; a child of one marker: the
-segment's turn at the rest frame, and the origin at the marker. Directions are in the lab's axes at the
+measured against its parent's markers when those make a frame, else against the child's markers and its
+own children's joints (a shank of two markers and its ankle) when those do. Where none does, against the
+child's: a turn two markers do not define is the segment's own at the rest frame; a child of one marker:
+the segment's turn at the rest frame, and the origin at the marker. Directions are in the lab's axes at the
 rest frame.
 
 The prior: an isotropic Gaussian on that position, centred where the fit put it, of standard
@@ -103,7 +104,7 @@ class JointUncertainty:
     prior_sd : (K,) the prior's standard deviation (mm).
     frame : (K,) the segment whose markers the joint is measured against (:func:`_frame_segment`): its
         child, or its parent where only the parent's markers make a frame.
-    frame_markers : (K,) markers of that segment that define its frame (3 means three or more, not on a line).
+    frame_markers : (K,) points of that segment that define its frame (3 means three or more, not on a line).
     turned_about : (K, 3) the main axis of the joint's relative rotations (lab axes at rest), NaN if unknown.
     lacks_axis : (K, 3) the axis a turn about which would place the joint along ``directions[:, 0]``.
     noise_sd : the take's noise (mm per coordinate) from the fit's residual; dof its degrees of freedom.
@@ -152,58 +153,77 @@ def segment_sizes(parent: np.ndarray, origin: np.ndarray, marker_segment: np.nda
     return out
 
 
-def _marker_frame(pr: _Problem, local: np.ndarray, s: int) -> tuple[list[int], np.ndarray, np.ndarray, int]:
-    """Segment ``s``'s markers' best-fit frame to first order: (its markers, their centroid at rest, ``Bp``
-    (3, 3n): their moves to the frame's small turn, none about a line they lie on), and how many markers
-    define that turn (0, 1, 2 or 3: three or more not on a line)."""
+def _frame_points(pr: _Problem, local: np.ndarray, s: int, bones: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, list[int]]:
+    """Points that make segment ``s``'s frame: its markers (their offsets ``local``), and with ``bones``
+    (S, 3) also its children's joints (their offsets from its origin); (positions (n, 3), each point's
+    first column among the constant unknowns)."""
     ms = [int(m) for m in pr.used if pr.seg[m] == s]
-    if not ms:
-        return ms, np.zeros(3), np.zeros((3, 0)), 0
-    L = local[ms]
-    cbar = L.mean(0)
-    r = L - cbar
-    # the markers' small turn w moves marker m by w x r_m = -hat(r_m) w
-    B = -_hat(r).reshape(-1, 3)
-    sv = np.linalg.svd(B, compute_uv=False) if len(ms) > 1 else np.zeros(3)
-    rank = int((sv > _LINE_RCOND * max(sv[0], 1e-300)).sum()) if len(ms) > 1 else 0
-    Bp = np.linalg.pinv(B, rcond=_LINE_RCOND) if len(ms) > 1 else np.zeros((3, 3 * len(ms)))
-    return ms, cbar, Bp, (3 if rank >= 3 else len(ms) if len(ms) < 3 else 2)
+    pos, cols = [local[m] for m in ms], [pr.gl[m] for m in ms]
+    if bones is not None:
+        for k in pr.kids:
+            if int(pr.parent[k]) == s:
+                pos.append(bones[k])
+                cols.append(pr.gi[k])
+    return np.array(pos, dtype=float).reshape(-1, 3), cols
 
 
-def _frame_segment(pr: _Problem, local: np.ndarray, c: int) -> int:
-    """The segment whose markers joint ``c`` is measured against: its child when the child's markers make
-    a frame (three or more, not on a line), else its parent when the parent's do, else the child. Against
-    a child of one or two markers the joint's turn about them is no quantity of the skeleton's (the
-    segment's twist about its markers is a convention, and the joint's place about them with it), so
-    that the data, which place the joint from the parent's side, would seem to leave it to the prior."""
-    if _marker_frame(pr, local, c)[3] < 3:
-        p = int(pr.parent[c])
-        if _marker_frame(pr, local, p)[3] == 3:
-            return p
-    return c
+def _point_frame(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The best-fit frame of points at ``pos`` (n, 3) to first order: (their centroid, ``Bp`` (3, 3n): their
+    moves to the frame's small turn, none about a line they lie on), and how many of them define that turn
+    (0, 1, 2 or 3: three or more not on a line)."""
+    n = len(pos)
+    if not n:
+        return np.zeros(3), np.zeros((3, 0)), 0
+    cbar = pos.mean(0)
+    # the points' small turn w moves point i by w x r_i = -hat(r_i) w
+    B = -_hat(pos - cbar).reshape(-1, 3)
+    sv = np.linalg.svd(B, compute_uv=False) if n > 1 else np.zeros(3)
+    rank = int((sv > _LINE_RCOND * max(sv[0], 1e-300)).sum()) if n > 1 else 0
+    Bp = np.linalg.pinv(B, rcond=_LINE_RCOND) if n > 1 else np.zeros((3, 3 * n))
+    return cbar, Bp, (3 if rank >= 3 else n if n < 3 else 2)
+
+
+def _frame_segment(pr: _Problem, local: np.ndarray, c: int, bones: np.ndarray) -> tuple[int, bool]:
+    """What joint ``c`` is measured against: (segment, whether its children's joints join its markers).
+    Its child's markers when they make a frame (three or more, not on a line); else its parent's when
+    those do; else the child's markers and its own children's joints (a shank of two markers and its
+    ankle), when those do; else the child's markers. Against a child of one or two markers the joint's
+    turn about them is no quantity of the skeleton's (the segment's twist about its markers is a
+    convention, and the joint's place about them with it), so that the data, which place the joint from
+    the parent's side, would seem to leave it to the prior."""
+    if _point_frame(_frame_points(pr, local, c)[0])[2] == 3:
+        return c, False
+    p = int(pr.parent[c])
+    if _point_frame(_frame_points(pr, local, p)[0])[2] == 3:
+        return p, False
+    if _point_frame(_frame_points(pr, local, c, bones)[0])[2] == 3:
+        return c, True
+    return c, False
 
 
 def _joint_operator(pr: _Problem, local: np.ndarray, c: int, s: int | None = None,
-                    bone: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                    bones: np.ndarray | None = None, with_joints: bool = False) -> tuple[np.ndarray, int]:
     """(3, ng) first-order map from the constant unknowns to joint ``c``'s position relative to the
-    best-fit frame of segment ``s``'s markers (its child ``c``, by default, or its parent, where the joint
-    sits at ``bone``, its offset from the parent's origin; see the module docstring), and how many markers
-    define that frame's turn (0, 1, 2 or 3)."""
+    best-fit frame of segment ``s``'s markers (its child ``c``, by default, or its parent; with
+    ``with_joints``, the markers and its children's joints; ``bones`` (S, 3) every child's offset from its
+    parent's origin; see the module docstring), and how many points define that frame's turn (0, 1, 2 or 3)."""
     s = c if s is None else int(s)
-    ms, cbar, Bp, n = _marker_frame(pr, local, s)
+    pos, first = _frame_points(pr, local, s, bones if with_joints else None)
+    cbar, Bp, n = _point_frame(pos)
     A = np.zeros((3, pr.ng))
-    if not ms:
+    if not len(pos):
         return A, 0
     # the joint sits at P in s's frame (the child's origin, 0; in the parent's, its bone offset d_c);
-    # relative to the markers' frame it moves by dP - t + hat(P - cbar) w, with t their mean move and
+    # relative to the points' frame it moves by dP - t + hat(P - cbar) w, with t their mean move and
     # w = Bp (their moves)
     P = np.zeros(3)
     if s != c:
-        P = np.asarray(bone, dtype=float)
+        P = np.asarray(bones[c], dtype=float)
         A[:, pr.gi[c] : pr.gi[c] + 3] = np.eye(3)
-    T = np.tile(np.eye(3), (1, len(ms))) / len(ms)
+    T = np.tile(np.eye(3), (1, len(pos))) / len(pos)
     J = -T + _hat(P - cbar) @ Bp
-    cols = np.concatenate([np.arange(pr.gl[m], pr.gl[m] + 3) for m in ms])
+    cols = np.concatenate([np.arange(f, f + 3) for f in first])
     A[:, cols] += J
     return A, n
 
@@ -410,8 +430,9 @@ def joint_uncertainty(
     K = kids.size
     size = segment_sizes(parent, origin, marker_segment, marker_local)
     prior_sd = np.maximum(prior_scale * size[kids], 1.0)
-    frame = np.array([_frame_segment(pr, l, int(c)) for c in kids], dtype=int)
-    ops = [_joint_operator(pr, l, int(c), int(f), d[c]) for c, f in zip(kids, frame)]
+    frames = [_frame_segment(pr, l, int(c), d) for c in kids]
+    frame = np.array([f for f, _ in frames], dtype=int)
+    ops = [_joint_operator(pr, l, int(c), f, d, j) for c, (f, j) in zip(kids, frames)]
     A = np.concatenate([a for a, _ in ops])  # (3K, ng)
     P = (A.T / np.repeat(prior_sd, 3) ** 2) @ A  # the prior's precision over the constant unknowns
     s2p = s2 * max(float(frames_per_independent), 1.0)  # the variance the data's precision is in units of
