@@ -204,6 +204,8 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             costs = [held_cost(c, both, w, pose, diag) for _, c, _ in cands]
             k = int(np.argmin(costs)) if np.isfinite(costs).any() else 0
             name, centres[:, e], why = cands[k]
+            if HOLD_REFINE and pose is not None and np.isfinite(costs[k]):
+                centres[:, e] = held_refined(centres[:, e], both, w, pose, diag)
             methods[e], done[e] = name, True
             per_joint[e]["why"] = why + (f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}, each held"
                                          f" fixed in the frame of the segment of {max(na, nb)} markers"
@@ -285,6 +287,27 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     if not params.stray_far:
         return out
     return hold_far(leave_out_strays(out, params.stray_far), params.stray_far, diag)
+
+
+HOLD_REFINE = True
+
+
+def held_refined(c: np.ndarray, both: np.ndarray, alpha, pose: tuple, diag) -> np.ndarray:
+    """The candidate ``c`` held fixed in the segment of ``pose`` and moved there to the least joint cost
+    (Kirk's, with the distance penalty ``alpha``): three unknowns, the joint's place in that segment."""
+    from scipy.optimize import minimize
+
+    R, t, _ = pose
+    Rd, td = R[diag], t[diag]
+    with pywarnings.catch_warnings():
+        pywarnings.simplefilter("ignore", RuntimeWarning)
+        p0 = np.nanmedian(np.einsum("fji,fj->fi", Rd, c[diag] - td), axis=0)
+    if not np.isfinite(p0).all():
+        return c
+    res = minimize(lambda p: joint_cost(_rotate(Rd, p) + td, both, alpha=alpha), p0, method="Nelder-Mead",
+                   options={"xatol": 0.05, "fatol": 1e-9, "initial_simplex": p0 + np.vstack([np.zeros(3), 10.0 * np.eye(3)])})
+    out = _rotate(R, res.x) + t
+    return np.where(np.isfinite(out[:, :1]), out, c)
 
 
 def held_cost(c: np.ndarray, both: np.ndarray, alpha: float | np.ndarray, pose: tuple | None, diag: np.ndarray | slice) -> float:
