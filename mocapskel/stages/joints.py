@@ -97,6 +97,11 @@ class Params:
     joint, rides on nothing of the subject (a sync light, a ball, a carried box): it is left out of the
     skeleton (see :func:`stray_leaves`); 0: kept. The bar of the output check ``joint_far``; a joint that still
     lies that far from every marker of its two segments is held near them (see :func:`hold_far_joints`)."""
+    hold_refine: bool = True
+    """``auto``: the candidate kept among JMV, the sphere fit and Hang's framework (see :func:`held_cost`) is
+    moved, held fixed in the segment of 3+ markers, to the least joint cost there (:func:`held_refined`).
+    Without it the generated bench gains 1-4 mm and a real walk's hip stays where the sphere fit put it,
+    120 mm from the reference's (BENCHMARKS, "The joints stage's gross failures")."""
     diag_frames: int = DIAG_FRAMES
     """Longer takes: frames (spread over the take) on which the diagnostics are
     computed, the turn check and the joint residual (the residual came within 1 %
@@ -204,7 +209,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             costs = [held_cost(c, both, w, pose, diag) for _, c, _ in cands]
             k = int(np.argmin(costs)) if np.isfinite(costs).any() else 0
             name, centres[:, e], why = cands[k]
-            if HOLD_REFINE and pose is not None and np.isfinite(costs[k]):
+            if params.hold_refine and pose is not None and np.isfinite(costs[k]):
                 centres[:, e] = held_refined(centres[:, e], both, w, pose, diag)
             methods[e], done[e] = name, True
             per_joint[e]["why"] = why + (f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}, each held"
@@ -288,8 +293,6 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         return out
     return hold_far(leave_out_strays(out, params.stray_far), params.stray_far, diag)
 
-
-HOLD_REFINE = True
 
 
 def held_refined(c: np.ndarray, both: np.ndarray, alpha, pose: tuple, diag) -> np.ndarray:
