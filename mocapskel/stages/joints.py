@@ -277,11 +277,11 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             warnings.append(f"joint {a}-{b} could not be placed in any frame")
     info = {"version": VERSION, "method": params.method, "per_joint": per_joint, "warnings": warnings}
     alt = None
-    jmv_placed = [e for e in alt_from_tree if methods[e] == "jmv"]
+    jmv_placed = [e for e in alt_from_tree if not np.array_equal(centres[:, e], tree.centres[:, e], equal_nan=True)]
     if jmv_placed:
-        # JMV's joints are the closest frame by frame, but the framework's, propagated through
-        # rigid bodies, keep every segment's markers and joints rigid together: the better start
-        # for the skeleton's fit on most takes. The rigid stage tries both.
+        # the joints placed by JMV or the sphere fit (or moved to the least held cost) against the
+        # framework's, which, propagated through rigid bodies, keep every segment's markers and joints
+        # rigid together: the better start for the skeleton's fit on many takes. The rigid stage tries both.
         alt = centres.copy()
         alt[:, jmv_placed] = tree.centres[:, jmv_placed]
         info["alt_start"] = [int(e) for e in jmv_placed]
