@@ -200,8 +200,8 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
                                                " on spheres about the joint in the other segment's frame (MGDK)"))
             if np.isfinite(tree.centres[:, e]).any():
                 alt_from_tree.append(e)
-            if np.isfinite(tree.centres[:, e]).any() and (tree.ok[e] or np.isfinite(fit.centre).any()):
-                # (a joint neither places with the data's support stays unplaced: its leaf is left out)
+            if np.isfinite(tree.centres[:, e]).any() and np.isfinite(fit.centre).any():
+                # (as before: a joint JMV cannot place in any frame stays unplaced and its leaf is left out)
                 cands.append((tree.method[e], tree.centres[:, e], _why(tree.method[e], tree.category, edges[e])))
             frame = a if na >= nb else b
             pose = poses[frame] if not isinstance(poses[frame], str) else None
