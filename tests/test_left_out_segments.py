@@ -164,10 +164,6 @@ def test_computed_points_need_two_bodies_and_a_noisy_take() -> None:
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "since the joints stage scores its estimators' candidates held in a segment (joints.held_cost, held_refined), the"
-    " one-marker ScapulaL1 of the cut take is fitted by the rigid stage and nothing is left out; whether that fit is"
-    " right is not checked"))
 @pytest.mark.parametrize("name", ["racing_full.c3d", "sample_propulsion.c3d"])
 def test_regression_a_real_take_cut_short_fits_without_the_segment_it_cannot_fit(name: str) -> None:
     """The first 40 frames of the wheelchair takes (kineticstoolkit): the one-marker segment ScapulaL1 is never
