@@ -117,9 +117,9 @@ class Joints:
     method   : E method names ("jmv", "mtb", "sphere", "score", ...).
     residual : (E,) rms distance variation of markers to the joint (mm).
     alt_centres : (F, E, 3) or None: a second start for the rigid stage, the
-               same centres with the JMV-placed joints taken from Hang's
-               framework instead (see the joints stage); None when no joint
-               was placed by JMV.
+               same centres with the joints kept otherwise taken from Hang's
+               framework instead (see the joints stage); None when every
+               joint is SCoRE's or the framework's.
     """
 
     topology: Topology

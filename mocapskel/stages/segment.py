@@ -122,6 +122,27 @@ RIGID_FRAC = 0.02
 COMPUTED_FRAC = 1e-4
 
 
+def take_levels(markers: Markers, params: Params = Params()) -> dict:
+    """The take's own scales that the later stages read from the segment stage's info: ``skin_level_mm``
+    (the skin-and-noise level, a distance std), ``size_mm`` (the median marker distance) and
+    ``rigid_tolerance_mm``, measured as :func:`run` measures them (on one sampling of frames instead of
+    the median of several). For a grouping handed in from elsewhere, which carries none of them: without
+    them the joints stage's distance penalty is zero and a joint that the motion leaves free along a
+    line runs off along it."""
+    rng = np.random.default_rng(params.seed)
+    pts = markers.points[sample_frames(markers.points.shape[0], markers.rate, params, rng)]
+    d = _pair_distances(pts)
+    std, cnt = _distance_std(pts, d)
+    with warnings.catch_warnings():  # markers never seen (together): NaN, left out
+        warnings.simplefilter("ignore", RuntimeWarning)
+        md = np.nanmean(d, axis=0)
+        size = float(np.nanmedian(md)) if np.isfinite(md).any() else 0.0
+    seen = np.diag(cnt) >= params.min_seen
+    level = skin_level(std[np.ix_(seen, seen)], COMPUTED_FRAC * size)
+    tau = max(params.rigid_k * level, COMPUTED_FRAC * size)
+    return {"skin_level_mm": level, "size_mm": size, "rigid_tolerance_mm": tau}
+
+
 def _computed(markers: Markers, iu: np.ndarray, pooled: np.ndarray, floor: float) -> tuple[np.ndarray, list, list]:
     """The points among ``iu`` that a model computed (see :func:`computed_points`): their mask over ``iu``,
     ``[label, why]`` for each, and the warning that says so."""
