@@ -305,7 +305,7 @@ def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: 
     assert "not recognised as a person" in report["export"]["names"]["note"]
     found = [c for c in report["checks"] if c["check"] == "limb_asymmetry" and f"the two {what}" in c["message"]]
     assert len(found) == 1 and any(h in found[0]["message"] for h in ((how,) if isinstance(how, str) else how)), report["checks"]
-    if what == "legs":  # the split foot made one leg a segment longer, and its bones longer than the other's
+    if what == "legs":  # the split foot made one leg a segment longer
         kids = {}
         for b in report["bones"]:
             kids.setdefault(b["parent"], []).append(b["segment"])
@@ -317,7 +317,10 @@ def test_person_shaped_trees_with_unlike_limbs_say_so(rel: str, what: str, how: 
                 chain.append(kids[chain[-1]][0])
             chains.append(chain)
         assert sorted(len(c) for c in chains) == [3, 4], chains
-        assert all(length[s] for c in chains for s in c[1:]), length
+        # the split foot's bones are a foot's, not longer than a shank (472-493 mm before the joints stage
+        # scored its estimators' candidates held in a segment; 205 mm since)
+        long = max(chains, key=len)
+        assert all(0.0 < length[s] < 400.0 for s in long[2:]), length
 
 
 def test_a_walks_legs_keep_their_like_bones_when_two_starts_tie(tmp_path: Path) -> None:
