@@ -2,7 +2,7 @@
 
     python -m bench.realref            # markdown to stdout (a note when the folder is absent)
 
-Each take is fitted by ``mocapskel fit TAKE -o NAME.bvh --up z --units mm`` in a
+Each take is fitted by ``python -m mocapskel fit TAKE -o NAME.bvh --up z --units mm`` (this checkout) in a
 fresh process and the BVH scored with that folder's ``score.py`` (see its
 README for what each reference is worth). The two unlabelled arm takes of
 ``../shared/realdata/joint-localization/`` whose grouping their author gives
@@ -11,6 +11,7 @@ are checked for exactly that grouping.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -31,12 +32,15 @@ ARM_GROUPS = {
 
 def fit_and_score(name: str, folder: Path) -> tuple[dict, dict, float]:
     """(score, report, wall seconds) of one reference take."""
-    exe = str(Path(sys.executable).parent / "mocapskel")
+    # this checkout's package, first on the path (the installed ``mocapskel`` script imports whatever checkout
+    # was installed, which need not be the one measured)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH", "")])))
     with tempfile.TemporaryDirectory() as d:
         bvh, rep = Path(d) / f"{name}.bvh", Path(d) / f"{name}.json"
         t = time.perf_counter()
-        r = subprocess.run([exe, "fit", str(folder / f"{name}.c3d"), "-o", str(bvh), "--up", "z", "--units", "mm",
-                            "--report", str(rep), "--no-cache", "-q"], capture_output=True, text=True)
+        r = subprocess.run([sys.executable, "-m", "mocapskel", "fit", str(folder / f"{name}.c3d"), "-o", str(bvh),
+                            "--up", "z", "--units", "mm", "--report", str(rep), "--no-cache", "-q"],
+                           capture_output=True, text=True, env=env)
         wall = time.perf_counter() - t
         if r.returncode != 0:
             return {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}, {}, wall
