@@ -146,9 +146,14 @@ def _true_segment_length(truth: Truth, t: int) -> float:
 
 def true_topology(truth: Truth, markers: Markers) -> Topology:
     """The true groups and tree of a generated take as a topology artifact, for the stages after it
-    (the joints, rigid and IK stages measured with the grouping and the tree handed in)."""
+    (the joints, rigid and IK stages measured with the grouping and the tree handed in). It carries the
+    take's scales the segment stage would have measured (:func:`~mocapskel.stages.segment.take_levels`):
+    without them the joints stage's distance penalty is zero and a joint the motion leaves free along a
+    line runs off along it."""
+    from .stages.segment import take_levels
+
     S = len(truth.segment_names)
     seg = Segments(markers=markers, group=np.asarray(truth.marker_segment), dist_std=np.zeros((0, 0)),
-                   eigvals=np.zeros(0))
+                   eigvals=np.zeros(0), info=take_levels(markers))
     edges = np.stack([truth.parent[truth.joint_child], truth.joint_child], axis=1)
     return Topology(segments=seg, edges=edges, cost=np.zeros(len(edges)), pair_cost=np.full((S, S), np.inf), root=0)

@@ -60,13 +60,29 @@ def test_held_cost_does_not_reward_a_joint_that_follows_the_noise() -> None:
 
 
 def test_a_given_grouping_gets_the_takes_own_scales() -> None:
-    """A grouping handed in carries no skin level or size; the joints stage measures them as the segment stage
-    does (the segment stage's own values on the same take, an independent run of it, within 25 %), and the
-    distance penalty is then not zero."""
+    """The true grouping handed in (``evaluate.true_topology``) carries the take's skin level and size,
+    measured as the segment stage measures them (its own values on the same take, an independent run of it,
+    within 25 %), so that the joints stage's distance penalty is not zero."""
     take, topo = _given(2, "walk")
-    assert "skin_level_mm" not in topo.segments.info
     info = pipeline.run_until(topo, "joints").artifact.topology.segments.info
     found = segment.run(topo.segments.markers).info
     for k in ("skin_level_mm", "size_mm", "rigid_tolerance_mm"):
         assert info[k] > 0
         assert abs(info[k] - found[k]) <= 0.25 * found[k], (k, info[k], found[k])
+
+
+def test_the_simplex_search_takes_scipys_steps() -> None:
+    """The joints stage's Nelder-Mead (written out so that a fit does not import scipy.optimize) against
+    scipy's on a bent valley in three unknowns: the same steps, so the same point."""
+    from scipy.optimize import minimize
+
+    from mocapskel.solvers.joints.simplex import nelder_mead
+
+    def f(p):
+        return (1.0 - p[0]) ** 2 + 100.0 * (p[1] - p[0] ** 2) ** 2 + (p[2] - 0.5 * p[1]) ** 2
+
+    sim = np.array([-1.2, 1.0, 0.3]) + np.vstack([np.zeros(3), 0.5 * np.eye(3)])
+    ours = nelder_mead(f, sim, xatol=1e-6, fatol=1e-12)
+    theirs = minimize(f, sim[0], method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-12, "initial_simplex": sim}).x
+    np.testing.assert_array_equal(ours, theirs)
+    np.testing.assert_allclose(ours, [1.0, 1.0, 0.5], atol=1e-4)

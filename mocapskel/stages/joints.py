@@ -38,6 +38,7 @@ from ..errors import DataError
 from ..model.leave_out import leave_out
 from ..model.naming import segment_names
 from ..solvers.parallel import run_blocks, run_forked
+from ..solvers.joints.simplex import nelder_mead
 from ..solvers.joints.hybrid import solve_tree
 from ..solvers.joints.jmv import edge_alpha, jmv_joint_long
 from ..solvers.joints.centres import (
@@ -46,7 +47,6 @@ from ..solvers.joints.centres import (
 )
 from ..solvers.joints.cost import distance_penalty, joint_cost
 from ..solvers.rigid_shape import shape_poses
-from .segment import take_levels
 from ..solvers.joints.score import group_pose, score
 
 VERSION = 22
@@ -113,11 +113,6 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     if params.method not in METHODS:
         raise ValueError(f"unknown joint method {params.method!r}")
     seg = topology.segments
-    if any(seg.info.get(k) is None for k in ("skin_level_mm", "size_mm", "rigid_tolerance_mm")):
-        # a grouping handed in (not found by the segment stage) carries no scales of the take: measured here,
-        # for the distance penalty below, the stray check and the rigid stage's leaf hinges
-        seg = replace(seg, info={**take_levels(seg.markers), **{k: v for k, v in seg.info.items() if v is not None}})
-        topology = replace(topology, segments=seg)
     pts = seg.markers.points
     S = seg.n_segments
     groups = [_columns(pts, seg.members(s)) for s in range(S)]
@@ -298,8 +293,6 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
 def held_refined(c: np.ndarray, both: np.ndarray, alpha, pose: tuple, diag) -> np.ndarray:
     """The candidate ``c`` held fixed in the segment of ``pose`` and moved there to the least joint cost
     (Kirk's, with the distance penalty ``alpha``): three unknowns, the joint's place in that segment."""
-    from scipy.optimize import minimize
-
     R, t, _ = pose
     Rd, td = R[diag], t[diag]
     with pywarnings.catch_warnings():
@@ -307,9 +300,9 @@ def held_refined(c: np.ndarray, both: np.ndarray, alpha, pose: tuple, diag) -> n
         p0 = np.nanmedian(np.einsum("fji,fj->fi", Rd, c[diag] - td), axis=0)
     if not np.isfinite(p0).all():
         return c
-    res = minimize(lambda p: joint_cost(_rotate(Rd, p) + td, both, alpha=alpha), p0, method="Nelder-Mead",
-                   options={"xatol": 0.05, "fatol": 1e-9, "initial_simplex": p0 + np.vstack([np.zeros(3), 10.0 * np.eye(3)])})
-    out = _rotate(R, res.x) + t
+    x = nelder_mead(lambda p: joint_cost(_rotate(Rd, p) + td, both, alpha=alpha),
+                    p0 + np.vstack([np.zeros(3), 10.0 * np.eye(3)]), xatol=0.05, fatol=1e-9)
+    out = _rotate(R, x) + t
     return np.where(np.isfinite(out[:, :1]), out, c)
 
 

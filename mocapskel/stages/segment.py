@@ -126,9 +126,9 @@ def take_levels(markers: Markers, params: Params = Params()) -> dict:
     """The take's own scales that the later stages read from the segment stage's info: ``skin_level_mm``
     (the skin-and-noise level, a distance std), ``size_mm`` (the median marker distance) and
     ``rigid_tolerance_mm``, measured as :func:`run` measures them (on one sampling of frames instead of
-    the median of several). For a grouping handed in from elsewhere, which carries none of them: without
-    them the joints stage's distance penalty is zero and a joint that the motion leaves free along a
-    line runs off along it."""
+    the median of several), for a grouping made elsewhere (:func:`~mocapskel.evaluate.true_topology`):
+    without them the joints stage's distance penalty is zero and a joint that the motion leaves free
+    along a line runs off along it."""
     rng = np.random.default_rng(params.seed)
     pts = markers.points[sample_frames(markers.points.shape[0], markers.rate, params, rng)]
     d = _pair_distances(pts)
