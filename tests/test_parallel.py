@@ -174,18 +174,28 @@ def _keeper():
     return fn
 
 
-def _no_children_left() -> bool:
-    """No child of this process is left, running or not yet reaped."""
-    try:
-        os.waitpid(-1, os.WNOHANG)
-    except ChildProcessError:
-        return True
-    return False
+def _children() -> set[int]:
+    """This process's children, running or not yet reaped (Linux: every thread's ``children`` list)."""
+    out: set[int] = set()
+    for task in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{task}/children") as f:
+                out.update(int(x) for x in f.read().split())
+        except FileNotFoundError:  # a thread that ended meanwhile
+            pass
+    return out
+
+
+def _no_children_left(before: set[int]) -> bool:
+    """No child of this process is left, running or not yet reaped, but those it had ``before`` (another
+    test's, in the same process, are not this one's to judge)."""
+    return not (_children() - before)
 
 
 @linux_only
 def test_shares_keep_each_items_state_in_its_own_process(monkeypatch) -> None:
     monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    before = _children()
     with Shares(_keeper(), 5) as sh:
         first = sh.call([("set", float(10 * j)) for j in range(5)])
         second = sh.call([("add", 1.5)] * 5)
@@ -195,7 +205,7 @@ def test_shares_keep_each_items_state_in_its_own_process(monkeypatch) -> None:
     assert [g[2] == PARENT for g in second] == [True, False, True, False, True]
     assert second[1][2] == second[3][2] == first[1][2] != PARENT
     assert second[1][3] == 1
-    assert parallel._FORCED is None and _no_children_left()
+    assert parallel._FORCED is None and _no_children_left(before)
 
 
 def test_shares_on_one_core_stay_in_this_process(monkeypatch) -> None:
@@ -209,20 +219,22 @@ def test_shares_on_one_core_stay_in_this_process(monkeypatch) -> None:
 @linux_only
 def test_shares_raise_a_childs_error_here_and_end_the_children(monkeypatch) -> None:
     monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    before = _children()
     with pytest.raises(ValueError, match="bad item 3"):
         with Shares(_keeper(), 4) as sh:
             sh.call([("set", 0.0)] * 4)
             sh.call([("fail", 3)] * 4)
-    assert _no_children_left()
+    assert _no_children_left(before)
 
 
 @linux_only
 def test_shares_say_so_when_a_child_is_lost(monkeypatch) -> None:
     monkeypatch.setenv("MOCAPSKEL_THREADS", "2")
+    before = _children()
     with pytest.raises(RuntimeError, match="ended unexpectedly"):
         with Shares(_keeper(), 2) as sh:
             sh.call([("die", 1)] * 2)
-    assert _no_children_left()
+    assert _no_children_left(before)
 
 
 def _blas_threads() -> int:
