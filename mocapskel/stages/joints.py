@@ -289,15 +289,21 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
     return hold_far(leave_out_strays(out, params.stray_far), params.stray_far, diag)
 
 
+def _held_point(c: np.ndarray, pose: tuple, diag) -> np.ndarray:
+    """(3,) a joint trajectory ``c`` (F, 3) held fixed in the segment of ``pose`` (its (R, t, shape)): its median
+    place in that segment's frame over the diagnostic frames ``diag``; NaN where it is never seen with it."""
+    R, t, _ = pose
+    with pywarnings.catch_warnings():  # frames where the segment or the candidate is not seen: NaN
+        pywarnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(np.einsum("fji,fj->fi", R[diag], c[diag] - t[diag]), axis=0)
+
 
 def held_refined(c: np.ndarray, both: np.ndarray, alpha, pose: tuple, diag) -> np.ndarray:
     """The candidate ``c`` held fixed in the segment of ``pose`` and moved there to the least joint cost
     (Kirk's, with the distance penalty ``alpha``): three unknowns, the joint's place in that segment."""
     R, t, _ = pose
     Rd, td = R[diag], t[diag]
-    with pywarnings.catch_warnings():
-        pywarnings.simplefilter("ignore", RuntimeWarning)
-        p0 = np.nanmedian(np.einsum("fji,fj->fi", Rd, c[diag] - td), axis=0)
+    p0 = _held_point(c, pose, diag)
     if not np.isfinite(p0).all():
         return c
     x = nelder_mead(lambda p: joint_cost(_rotate(Rd, p) + td, both, alpha=alpha),
@@ -320,14 +326,10 @@ def held_cost(c: np.ndarray, both: np.ndarray, alpha: float | np.ndarray, pose: 
     if not np.isfinite(c).any():
         return np.inf
     if pose is not None:
-        R, t, _ = pose
-        Rd, td, cd = R[diag], t[diag], c[diag]
-        with pywarnings.catch_warnings():  # frames where the segment or the candidate is not seen: NaN
-            pywarnings.simplefilter("ignore", RuntimeWarning)
-            local = np.einsum("fji,fj->fi", Rd, cd - td)
-            p = np.nanmedian(local, axis=0)
+        p = _held_point(c, pose, diag)
         if np.isfinite(p).all():
-            return float(joint_cost(_rotate(Rd, p) + td, both, alpha=alpha))
+            R, t, _ = pose
+            return float(joint_cost(_rotate(R[diag], p) + t[diag], both, alpha=alpha))
     return float(joint_cost(c[diag], both, alpha=alpha))
 
 

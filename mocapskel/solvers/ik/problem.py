@@ -115,7 +115,6 @@ class _Model:
     def reach(self, scale: float) -> np.ndarray:
         """(S,) how far a turn of each segment moves what it carries: the farthest of its markers and
         its children's origins from its own origin; ``scale`` for a segment that carries neither."""
-        S = self.t.S
         r = np.sqrt((self.lp**2).sum(1)).max(0)
         bone = np.sqrt((self.off**2).sum(0))
         np.maximum.at(r, self.t.par[1:], bone[1:])

@@ -275,6 +275,7 @@ def solve_ik(
     pts = np.concatenate([model.origin, model.origin[seg] + model.local])
     scale = max(float(np.linalg.norm(pts - model.origin[0], axis=1).max()), 1.0)
     floor = 1e-12 * scale**2  # keeps every 3x3 block invertible
+    reach = model.reach(scale)  # the convergence test's lever of each segment's turn
 
     if out is None:
         rot = np.empty((F, S, 3, 3))
@@ -294,7 +295,7 @@ def solve_ik(
         Rp = _rotation_planes(R_prior, prior_perm, lo, hi)
         R = Rp if init_rot is None else _rotation_planes(init_rot, tree.perm, lo, hi)
         p = np.ascontiguousarray(p0[lo:hi].T)
-        R, p, converged[lo:hi], it = _iterate(model, R, p, st, Rp, pw, int(iterations), damping, tol, floor, scale)
+        R, p, converged[lo:hi], it = _iterate(model, R, p, st, Rp, pw, int(iterations), damping, tol, floor, reach)
         r = model.markers(p, R) - yk
         dist = model.unpack(np.sqrt(np.einsum("kisf,kisf->ksf", r, r)))
         res[lo:hi, used] = np.where(seen[lo:hi], dist, np.nan)
@@ -329,7 +330,7 @@ def _iterate(
     damping: float,
     tol: float,
     floor: float,
-    scale: float,
+    reach: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Levenberg-Marquardt on one block of frames: (R, p, converged, iterations run).
 
@@ -341,7 +342,6 @@ def _iterate(
     so that its rounding is that of the change, not of the cost.
     """
     n = p.shape[-1]
-    reach = model.reach(scale)
     RpT = np.ascontiguousarray(R_prior.transpose(1, 0, 2, 3))
     W, lbar, ybar, Cc = st["W"], st["lbar"], st["ybar"], st["Cc"]
     G, P = model.fk(p, R)
