@@ -730,3 +730,56 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     np.testing.assert_array_equal(again.origin, alone.origin)
     np.testing.assert_array_equal(again.rot, alone.rot)
     assert again.n_iter == alone.n_iter == 5
+
+
+def test_marker_weights_normal_equations_match_a_dense_finite_difference_jacobian():
+    """With per-marker weights every block of the normal equations (poses, bone and marker offsets, their
+    right-hand side) is that of the dense Jacobian of the weighted residual."""
+    from mocapskel.solvers.model.calibrate import _exp, _Problem
+    from mocapskel.synth.chains import hang_chain
+
+    take = hang_chain((3, 2, 3), 60, rng=np.random.default_rng(4), link_length=300.0, noise=0.3)
+    skel = pipeline.run_until(take.markers, "rigid", {}).artifact
+    keep = skel.pose_frames[np.arange(0, skel.pose_frames.size, 25)[:3]]
+    pts = skel.joints.topology.segments.markers.points[keep].copy()
+    pts[1, 0] = np.nan  # a marker unseen in one frame
+    wts = np.random.default_rng(1).uniform(0.05, 3.0, pts.shape[1])
+    pr = _Problem(skel.parent, skel.marker_segment, pts, wts)
+    i = np.searchsorted(skel.pose_frames, keep)
+    p, R, l = skel.pose_root[i], skel.pose_rot[i], skel.marker_local
+    d = np.zeros((len(skel.parent), 3))
+    for c in pr.kids:
+        d[c] = skel.origin[c] - skel.origin[skel.parent[c]]
+    F, S, nf, ng = len(keep), pr.S, pr.nf, pr.ng
+
+    def residual(x):
+        pose, g = x[: F * nf].reshape(F, nf), x[F * nf:]
+        d1, l1 = d.copy(), l.copy()
+        for c in pr.kids:
+            d1[c] += g[pr.gi[c]: pr.gi[c] + 3]
+        for m in pr.used:
+            l1[m] += g[pr.gl[int(m)]: pr.gl[int(m)] + 3]
+        return pr.residual(p + pose[:, :3], _exp(pose[:, 3:].reshape(F, S, 3)) @ R, d1, l1)
+
+    n = F * nf + ng
+    r0 = residual(np.zeros(n))
+    J = np.zeros((r0.size, n))
+    for k in range(n):
+        e = np.zeros(n)
+        e[k] = 1e-6
+        J[:, k] = (residual(e) - residual(-e)).ravel() / 2e-6
+    # the weighted cost is the residual's squares: sum of weight x squared distance
+    x = r0 / np.where(pr.w[:, pr.used, None] > 0, pr.w[:, pr.used, None], 1.0)
+    assert np.isclose(pr.cost(p, R, d, l), float((wts[pr.used] * np.isfinite(pts[:, pr.used, 0]) * (x**2).sum(-1)).sum()))
+    Hff, X, Hgg, bg = pr.normal_equations(slice(0, F), p, R, d, l)
+    Jr = J.reshape(F, -1, n)  # rows of one frame together
+    rr = r0.reshape(F, -1)
+    tol = 1e-6 * np.abs(J.T @ J).max()
+    for f in range(F):
+        Jf, Jg = Jr[f][:, f * nf:(f + 1) * nf], Jr[f][:, F * nf:]
+        assert np.allclose(Hff[f], Jf.T @ Jf, atol=tol)
+        assert np.allclose(X[f, :, :ng], Jf.T @ Jg, atol=tol)
+        assert np.allclose(X[f, :, ng], Jf.T @ rr[f], atol=tol)
+    Jg = J[:, F * nf:]
+    assert np.allclose(Hgg, Jg.T @ Jg, atol=tol)
+    assert np.allclose(bg, Jg.T @ r0.ravel(), atol=tol)
