@@ -20,7 +20,7 @@ from ..model.naming import segment_names
 from ..solvers.parallel import run_forked
 from ..solvers.rules.deepen import deepen_joints
 from ..solvers.rules.leaf_hinges import centre_leaf_hinges
-from ..solvers.model.joint_map import NOISE_FLOOR_MM, map_refine, marker_noise, noise_sigma, residual_correlation
+from ..solvers.model.joint_map import map_refine, noise_sigma, residual_correlation
 from ..solvers.rules.mirror import centre_mirrored_pairs
 from ..solvers.rules.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
 from ..solvers.model.refinement import _refine_once, refine
@@ -132,10 +132,6 @@ class Params:
     of their length (a Gaussian factor per pair; 0: no such factor). 0.03: a body's left and right long
     bones differ by a few per cent; with it the model gained on both generated halves and on cmu_16_07
     (BENCHMARKS, "The data's weight, the prior's mean and like limbs": ``map-like``)."""
-    marker_noise: bool = False
-    """With ``joint_model="map"``: each marker weighed by its own noise (its variance about its segment's
-    rigid shape, :func:`~mocapskel.solvers.model.joint_map.marker_noise`), the take's level the median
-    marker's; else one level for every marker, pooled over the segments of three or more."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -337,14 +333,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
 
     pts = joints.topology.segments.markers.points
     F = pts.shape[0]
-    sub = pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)]
-    var = None
-    if params.marker_noise:
-        var = marker_noise(sub, np.asarray(skel.marker_segment))
-        noise = max(float(np.sqrt(np.nanmedian(var))) if np.isfinite(var).any() else noise_sigma(sub, np.asarray(skel.marker_segment)),
-                    NOISE_FLOOR_MM)
-    else:
-        noise = noise_sigma(sub, np.asarray(skel.marker_segment))
+    noise = noise_sigma(pts[np.linspace(0, F - 1, min(F, params.max_frames)).round().astype(int)],
+                        np.asarray(skel.marker_segment))
 
     rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
 
@@ -352,7 +342,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma, marker_var=var)
+                         bone_sigma=params.bone_sigma)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

@@ -107,7 +107,7 @@ def _exp(rv: np.ndarray) -> np.ndarray:
 
 
 class _Problem:
-    def __init__(self, parent, seg, observed, weights=None):
+    def __init__(self, parent, seg, observed):
         S = len(parent)
         self.S = S
         self.parent = np.asarray(parent)
@@ -121,9 +121,7 @@ class _Problem:
         self.used = np.flatnonzero((np.asarray(seg) >= 0) & vis.any(0))
         self.seg = np.asarray(seg)
         self.y = np.where(vis[..., None], observed, 0.0)
-        # each residual is multiplied by w: the square root of the marker's weight where it is seen, else 0
-        self.w = vis.astype(float) if weights is None else np.where(vis, np.sqrt(np.asarray(weights, dtype=float)), 0.0)
-        self.vis = vis
+        self.w = vis.astype(float)
         self.nf = 3 + 3 * S
         kids = [s for s in range(S) if self.parent[s] >= 0]
         self.gi = {c: 3 * i for i, c in enumerate(kids)}
@@ -316,7 +314,7 @@ class _Problem:
         Hff = JfT @ JfT.transpose(0, 2, 1)
         X = np.empty((n, nf, ng + 1))
         # bone columns: the Jf rows of a joint's subtree summed, times the parent's rotation
-        A = ((JfT.reshape(n, nf * 3, U) * w[:, None, :]) @ self.sub).reshape(n, nf, 3, nk)
+        A = (JfT.reshape(n, nf * 3, U) @ self.sub).reshape(n, nf, 3, nk)
         # ... as one product with a block-diagonal matrix of those rotations (rows (axis, joint),
         # columns (joint, axis)): a few wasted zeros, far fewer small products
         BD = np.zeros((n, nd, nd))
@@ -326,25 +324,23 @@ class _Problem:
         # marker columns: root rows w R_t, a path segment's rows hat(u) w R_t, zero elsewhere
         Xl = X[..., nd:ng].reshape(n, S + 1, 3, U, 3)
         Xl[:] = 0.0
-        Rw2 = Rw * w[..., None, None]  # the marker offsets' Jacobian blocks times w once more: w^2 R
-        Xl[:, 0] = Rw2.transpose(0, 2, 1, 3)
+        Xl[:, 0] = Rw.transpose(0, 2, 1, 3)
         X.reshape(n, -1)[:, self.xl_at] = (Hu @ Rw[:, self.fi]).reshape(n, -1)
         Hgg = np.zeros((ng, ng))
         # bone-bone: joints c, e share the visible markers below both
-        w2 = w * w
-        both = (w2 @ self.sub2.reshape(U, nk * nk)).reshape(n, nk, 1, nk, 1)
+        both = (w @ self.sub2.reshape(U, nk * nk)).reshape(n, nk, 1, nk, 1)
         Rs = Rp.transpose(0, 1, 3, 2).reshape(n, nd, 3)  # rows (joint, axis)
         RR = (Rs @ Rs.transpose(0, 2, 1)).reshape(n, nk, 3, nk, 3)
         Hgg[:nd, :nd] = (RR * both).sum(0).reshape(nd, nd)
         # bone-marker: joint c and a marker m below it, sum_f R_parent(c)^T w R_t(m), every pair in
         # one product, then kept where c is on m's path
-        Hdl = Rs.transpose(1, 0, 2).reshape(nd, 3 * n) @ Rw2.transpose(0, 2, 1, 3).reshape(3 * n, 3 * U)
+        Hdl = Rs.transpose(1, 0, 2).reshape(nd, 3 * n) @ Rw.transpose(0, 2, 1, 3).reshape(3 * n, 3 * U)
         Hgg[:nd, nd:] = Hdl * self.sub_mask
         Hgg[nd:, :nd] = Hgg[:nd, nd:].T
         idx = np.arange(nd, ng)
-        Hgg[idx, idx] = np.repeat(w2.sum(0), 3)
+        Hgg[idx, idx] = np.repeat(w.sum(0), 3)
         bg = np.empty(ng)
-        bg[:nd] = np.einsum("fcja,fcj->ca", Rp, np.einsum("fmj,mc->fcj", r * w[..., None], self.sub)).reshape(-1)
+        bg[:nd] = np.einsum("fcja,fcj->ca", Rp, np.einsum("fmj,mc->fcj", r, self.sub)).reshape(-1)
         bg[nd:] = np.einsum("fmji,fmj->mi", Rw, r).reshape(-1)
         return Hff, X, Hgg, bg
 
@@ -369,7 +365,6 @@ def refine_skeleton(
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
     prior_weights: np.ndarray | None = None,
     like_bones: list[tuple[int, int, float]] | None = None,
-    marker_weights: np.ndarray | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -404,13 +399,11 @@ def refine_skeleton(
     like_bones : (a, b, weight) for two child segments whose offsets from their parents' origins (their
         parents' bones) should be as long as each other: ``weight`` (whole fit) x the squared difference of
         their lengths, each length linearised along its direction at the start.
-    marker_weights : (M,) each marker's weight in the data term (its residual squared times it; None: 1),
-        e.g. the take's noise variance over the marker's own.
     """
     parent = np.asarray(parent)
     S = len(parent)
     F = observed.shape[0]
-    pr = _Problem(parent, np.asarray(marker_segment), observed, marker_weights)
+    pr = _Problem(parent, np.asarray(marker_segment), observed)
     p = np.array(root_pos, dtype=float)
     R = np.array(rot, dtype=float)
     d = np.zeros((S, 3))
@@ -418,7 +411,7 @@ def refine_skeleton(
         d[c] = origin[c] - origin[parent[c]]
     l = np.array(marker_local, dtype=float)
     nf, ng = pr.nf, pr.ng
-    W = max(float((pr.w * pr.w).sum()), 1.0)
+    W = max(pr.w.sum(), 1.0)
     held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
             if parent[int(c)] >= 0]
     k_hold = float(hold_weight) * F

@@ -52,7 +52,6 @@ from ..rules.deepen import deepen_joints
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from ..rest_pose import _rest_markers
-from ..rigid import kabsch
 from ..rigid_shape import procrustes_shape
 
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
@@ -76,35 +75,6 @@ def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
         sse += float(np.sum(rms[ok] ** 2 * n[ok]))
         dof += float(np.sum(3 * n[ok] - 6))
     return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
-
-
-def marker_noise(points: np.ndarray, group: np.ndarray, iters: int = 4) -> np.ndarray:
-    """(M,) each marker's own noise variance per axis (mm^2), NaN where its segment has fewer than three
-    markers (no rigid shape to measure it against): every segment of three or more markers fitted as one
-    rigid shape over the frames ``points`` (F, M, 3), each frame's pose weighted by its markers' inverse
-    variances and the variances measured again from that fit's residuals, ``iters`` times. A marker that
-    does not ride its segment rigidly (an acromion that moves with the shoulder girdle, skin over a muscle)
-    so gets a large variance, and the segment's pose follows the markers that do."""
-    M = points.shape[1]
-    var = np.full(M, np.nan)
-    for s in np.unique(group[group >= 0]):
-        mids = np.flatnonzero(group == s)
-        n = mids.size
-        if n < 3:
-            continue
-        obs = points[:, mids]
-        shape, R, t, _ = procrustes_shape(obs)
-        for _ in range(max(1, iters)):
-            ok = np.isfinite(R[:, 0, 0])
-            back = np.einsum("fji,fpj->fpi", R[ok], obs[ok] - t[ok, None, :])  # (F', n, 3) in the shape's frame
-            seen = np.isfinite(back).all(-1)
-            shape = np.where(seen[..., None], back, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
-            r2 = np.where(seen, ((back - shape) ** 2).sum(-1), 0.0)
-            v = r2.sum(0) / np.maximum(3.0 * seen.sum(0) * (3 * n - 6) / (3 * n), 1e-300)
-            v = np.maximum(v, NOISE_FLOOR_MM**2)
-            R, t, _ = kabsch(shape, obs, 1.0 / v)
-        var[mids] = v
-    return var
 
 
 def residual_correlation(points: np.ndarray, group: np.ndarray) -> np.ndarray:
@@ -202,7 +172,7 @@ def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
 
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
-               bone_sigma: float = 0.0, marker_var: np.ndarray | None = None) -> Skeleton:
+               bone_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -236,8 +206,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                 tie_sig.append(sb)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
-                          anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          marker_weights=None if marker_var is None else sn**2 / np.where(np.isfinite(marker_var), marker_var, sn**2))
+                          anchor=(centre.origin, centre.marker_local), like_bones=ties)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))))
