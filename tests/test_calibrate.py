@@ -257,6 +257,31 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     assert err[0][seg] < 35.0, (seg, err[0][seg], err[1][seg])
 
 
+def test_the_way_into_the_body_is_what_most_frames_say_not_the_rest_pose(monkeypatch):
+    """A realistic CMU-set range of motion (seed 1, true grouping): at its rest frame the right leg is
+    lifted and turned out, and the mean of the markers lies on the knee marker's side along the knee's
+    axis. Judged there, the deepening took the knee 50 mm out of the leg (105 mm from the truth); judged
+    by most of the refinement's frames, it takes both knees one half-width inside their markers."""
+    from mocapskel.synth.presets import realistic
+
+    take = make(realistic(seed=1, frames=600, motion="rom", markerset="cmu41"))
+    clean = pipeline.run_until(take.markers, "clean").artifact
+    joints = pipeline.run_until(evaluate.true_topology(take.truth, clean), "joints").artifact
+    flat = rigid.run(joints, rigid.Params(joint_depth=False))
+    hr = rigid.Params().hinge_ratio
+
+    def knees(s):
+        e = evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each
+        return e["LShank"], e["RShank"]
+
+    deep = deepen.deepen_joints(flat, hr)
+    assert {"seg10", "seg13"} <= set(deep.info["deepened"]), deep.info["deepened"]
+    assert max(knees(deep)) < 20.0, knees(deep)
+    # the rest frame alone (the projection handed in) sends the right knee the wrong way
+    monkeypatch.setattr(deepen, "_inward", lambda skel, p, m, ax, at_rest: float(np.sign(at_rest)) or 1.0)
+    assert knees(deepen.deepen_joints(flat, hr))[1] > 60.0
+
+
 def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     """A generated kick's knee, as the fit leaves it (near its lateral marker), given a medial marker on
     the thigh, on the axis 1.4 half-widths inward of the lateral one: the knee goes to the midpoint of

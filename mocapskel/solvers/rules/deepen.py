@@ -56,6 +56,24 @@ def _half_width(skel: Skeleton, origin: np.ndarray, c: int, point: np.ndarray, p
     return None if r > LIMB_WIDTH * length else (r, length)
 
 
+def _inward(skel: Skeleton, p: int, m: int, ax: np.ndarray, at_rest: float) -> float:
+    """+1 or -1: the way along the hinge axis ``ax`` (in segment ``p``'s frame, the lab's at rest) from marker
+    ``m`` towards the subject's middle (the mean of the markers seen), as most of the refinement's frames
+    have it (``at_rest``, that projection at rest, where there are none): one pose, such as a leg lifted and
+    turned out in a range of motion's rest frame, can put the body's middle on the marker's side."""
+    v = np.array([at_rest])
+    if skel.pose_frames is not None and skel.pose_rot is not None:
+        pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
+        seen = np.isfinite(pts).all(-1)
+        n = seen.sum(1)
+        mid = np.where(seen[..., None], pts, 0.0).sum(1) / np.maximum(n, 1)[:, None]
+        a = skel.pose_rot[:, p] @ ax  # the axis in the lab, frame by frame
+        ok = seen[:, m] & (n > 1) & np.isfinite(a).all(1)
+        if ok.any():
+            v = np.einsum("fi,fi->f", mid[ok] - pts[ok, m], a[ok])
+    return float(np.sign(np.median(v))) or 1.0
+
+
 def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None = None) -> Skeleton:
     """Hinges between two limbs with a marker over their axis get their centre one limb half-width
     inside that marker.
@@ -67,8 +85,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
     about the child's bone line left out: a limb segment of one or two markers hardly fixes its own
     twist) and a marker of its two segments within one limb half-width of that axis and, along it,
     within a quarter of the shorter limb's length (or one and a half half-widths, if more) of the
-    centre, the centre is moved along the axis, away from the marker towards the subject's middle, to
-    one limb half-width from it. The half-width is the median distance of the two limbs' other
+    centre, the centre is moved along the axis, away from the marker towards the subject's middle (as
+    most of the refinement's frames have it: :func:`_inward`), to one limb half-width from it. The half-width is the median distance of the two limbs' other
     markers from their bone lines, drawn through the axis at the level of that marker; both limbs
     must give one and agree within a factor of 2 (a leaf, such as a foot or a forearm that carries
     the hand's markers, has no bone line: ankles deepened by the shank's half-width alone came out
@@ -145,7 +163,7 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
             if not on:
                 continue
             m = on[0]
-            inward = np.sign(float((centre - pos[m]) @ ax)) or 1.0
+            inward = _inward(skel, p, m, ax, float((centre - pos[m]) @ ax))
             shift = t[m] + inward * r
         if share is not None and not (shift := _weighed(shift, share, c, ax)):
             continue
