@@ -183,6 +183,13 @@ def test_refinement_holds_a_joint_along_the_axis_it_is_told(exact_two_marker):
     # the default hold is a prior: where the markers fix the position (here they do), they outweigh it
     assert abs(along(free)) < along(soft) < 0.5 * along(stiff)
     assert stiff.rms[1] > soft.rms[1] > free.rms[1]  # the rms reported is the markers' alone, and holding costs some
+    # a hold's weight given for the whole fit, joint by joint and per segment, is the per-frame weight times the frames
+    F = len(use)
+    same = fit(hold_along={c: a}, hold_weights={c: (100.0 * F, 100.0 * F)})
+    assert np.allclose(same.origin, stiff.origin, atol=1e-6) and np.isclose(same.objective, stiff.objective)
+    # held relative to its parent's markers only (its own segment's weight 0), as ``along`` measures it: still held
+    half = fit(hold_along={c: a}, hold_weights={c: (100.0 * F, 0.0)})
+    assert along(half) > 2.5 and not np.isclose(half.objective, stiff.objective)
 
 
 def test_a_hinge_is_found_through_the_twist_of_a_limb_its_markers_hardly_fix():
@@ -217,7 +224,8 @@ def kick():
 def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it(kick):
     """Realistic CMU marker set (knee, elbow and ankle markers on the flexion axes, 42-52 mm outside the
     joint centres, skin motion driven by the joint angles), a kick: along the axis the markers hardly fix
-    a centre and the fit leaves it near the marker; the knee, deepened, is nearer the truth (by 30 mm here).
+    a centre and the fit leaves it near the marker; the knee, deepened, is nearer the truth (by 30 mm here), and
+    the other, which the fit had placed 8 mm from it, moves 16 mm inside and stays within 11 mm.
     Only joints between two limbs are deepened: where the child is a leaf (a foot, a forearm carrying the
     hand) one limb gives the half-width, and so deepened, realistic elbows came out 4-13 mm farther and
     ankles from 20 mm nearer to 67 mm farther from the truth."""
@@ -226,8 +234,10 @@ def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it(ki
     moved = deep.info.get("deepened", {})
     assert moved and all(0 < v < 100 for v in moved.values())  # knees, elbows, ankles: tens of mm
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (deep, flat)]
-    knees = [k for k in ("LShank", "RShank") if abs(err[0][k] - err[1][k]) > 1.0]
-    assert knees and all(err[0][k] < err[1][k] - 10.0 for k in knees), (err[0], err[1])
+    # the knee the fit left at its marker comes well inside; one the fit had placed stays near the truth
+    far = [k for k in ("LShank", "RShank") if err[1][k] > 40.0]
+    assert far and all(err[0][k] < err[1][k] - 25.0 for k in far), (err[0], err[1])
+    assert all(err[0][k] < 15.0 for k in ("LShank", "RShank") if err[1][k] < 15.0), (err[0], err[1])
     # each segment keeps its markers where they were: only joints moved
     rest = lambda s: s.origin[np.maximum(s.marker_segment, 0)] + s.marker_local  # noqa: E731
     assert np.allclose(rest(deep), rest(flat), atol=1e-9)
@@ -242,7 +252,8 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     the knee lands where the unslid one does, one half-width inside its marker and near the truth."""
     take, _, flat = kick
     deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
-    (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]  # a joint between two limbs
+    moved = {n: v for n, v in deep.info["deepened"].items() if flat.names.index(n) in flat.parent}  # between two limbs
+    name = max(moved, key=moved.get)  # the knee the fit left at its marker
     c = flat.names.index(name)
     inward = deep.origin[c] - flat.origin[c]
     d = -80.0 * inward / np.linalg.norm(inward)
@@ -257,22 +268,31 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     assert err[0][seg] < 35.0, (seg, err[0][seg], err[1][seg])
 
 
-def test_the_way_into_the_body_is_what_most_frames_say_not_the_rest_pose(monkeypatch):
-    """A realistic CMU-set range of motion (seed 1, true grouping): at its rest frame the right leg is
-    lifted and turned out, and the mean of the markers lies on the knee marker's side along the knee's
-    axis. Judged there, the deepening took the knee 50 mm out of the leg (105 mm from the truth); judged
-    by most of the refinement's frames, it takes both knees one half-width inside their markers."""
+@pytest.fixture(scope="module")
+def rom_cmu():
+    """A realistic CMU-set range of motion (seed 1), its joints stage on the true grouping, and a function
+    giving the two knees' rms errors (mm) after IK with a skeleton."""
     from mocapskel.synth.presets import realistic
 
     take = make(realistic(seed=1, frames=600, motion="rom", markerset="cmu41"))
     clean = pipeline.run_until(take.markers, "clean").artifact
     joints = pipeline.run_until(evaluate.true_topology(take.truth, clean), "joints").artifact
-    flat = rigid.run(joints, rigid.Params(joint_depth=False))
-    hr = rigid.Params().hinge_ratio
 
     def knees(s):
         e = evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each
         return e["LShank"], e["RShank"]
+
+    return joints, knees
+
+
+def test_the_way_into_the_body_is_what_most_frames_say_not_the_rest_pose(monkeypatch, rom_cmu):
+    """A realistic CMU-set range of motion (seed 1, true grouping): at its rest frame the right leg is
+    lifted and turned out, and the mean of the markers lies on the knee marker's side along the knee's
+    axis. Judged there, the deepening took the knee 50 mm out of the leg (105 mm from the truth); judged
+    by most of the refinement's frames, it takes both knees one half-width inside their markers."""
+    joints, knees = rom_cmu
+    flat = rigid.run(joints, rigid.Params(joint_depth=False))
+    hr = rigid.Params().hinge_ratio
 
     deep = deepen.deepen_joints(flat, hr)
     assert {"seg10", "seg13"} <= set(deep.info["deepened"]), deep.info["deepened"]
@@ -280,6 +300,19 @@ def test_the_way_into_the_body_is_what_most_frames_say_not_the_rest_pose(monkeyp
     # the rest frame alone (the projection handed in) sends the right knee the wrong way
     monkeypatch.setattr(deepen, "_inward", lambda skel, p, m, ax, at_rest: float(np.sign(at_rest)) or 1.0)
     assert knees(deepen.deepen_joints(flat, hr))[1] > 60.0
+
+
+def test_the_model_holds_a_knee_along_its_axis_where_its_prior_knows_the_place(rom_cmu):
+    """The model's MAP on the same take: the knees' prior mean is one half-width inside the knee marker
+    (the deepening's geometry), and along the axis the markers' information is the knee's small turns
+    about the other axes, which the skin motion makes too: with one prior for every joint (0.1 of the
+    segment's size) the data pull both knees 30-35 mm along the axis; with a second prior along the axis
+    on the hinges whose place the prior knows (``hinge_scale``), they stay near it."""
+    joints, knees = rom_cmu
+    free = knees(rigid.run(joints, rigid.Params(joint_model="map", hinge_scale=0.0)))
+    held = knees(rigid.run(joints, rigid.Params(joint_model="map")))  # hinge_scale 0.01
+    assert min(free) > 25.0, free
+    assert max(held) < 15.0, held
 
 
 def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
@@ -290,7 +323,8 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     the medial one, the two limbs disagreed and the knee was not moved at all)."""
     _, _, flat = kick
     deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
-    (name,) = [n for n in deep.info["deepened"] if flat.names.index(n) in flat.parent]
+    moved = {n: v for n, v in deep.info["deepened"].items() if flat.names.index(n) in flat.parent}
+    name = max(moved, key=moved.get)  # the knee the fit left near its lateral marker
     c = flat.names.index(name)
     p = int(flat.parent[c])
     u = deep.origin[c] - flat.origin[c]

@@ -118,10 +118,12 @@ class Params:
     two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
     distance of its markers from the joint): 15 mm for a thigh's 150. Chosen among 0.03, 0.1 and 0.3
     on generated seeds 1-3 (BENCHMARKS, "Rules against the model")."""
-    prior_mean: str = "deepened"
+    prior_mean: str = "deepened+leaf"
     """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
-    that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move)."""
+    that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move);
+    ``"deepened+leaf"``, also a hinge at the end of a limb at its end segment's markers' middle along its
+    axis where the markers do not see that move (the geometry of :func:`centre_leaf_hinges`)."""
     data_weight: str = "frames"
     """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
@@ -132,6 +134,19 @@ class Params:
     of their length (a Gaussian factor per pair; 0: no such factor). 0.03: a body's left and right long
     bones differ by a few per cent; with it the model gained on both generated halves and on cmu_16_07
     (BENCHMARKS, "The data's weight, the prior's mean and like limbs": ``map-like``)."""
+    hinge_scale: float = 0.01
+    """With ``joint_model="map"``: a second prior, along the axis only, on the hinges whose place along their
+    axis the prior's mean knows (a marker over the axis, ``prior_mean``'s deepening; a limb's end segment's
+    markers' middle; the joints stage's placement on the axis of two segments of three or more markers), its
+    standard deviation this multiple of the segment's size (as ``prior_scale``'s); 0: none. Along such an
+    axis the markers' information is the small turns about the other axes, which skin motion makes as well.
+    0.01 (a few mm) measured better than 0.03 and 0.1 on the tuning seeds and about as well as 0.003
+    (BENCHMARKS, "A prior along a hinge's axis")."""
+    hinge_placed: bool = False
+    """With ``hinge_scale``: the joints stage's hinges placed on their axis (its point nearest the two segments'
+    markers) get the second prior too. Off: on the generated checking half it cost 0.9 mm (a kick's hip held
+    along its flexion axis 198 mm from the truth), though on opensim_test_walking it matched 6 of 6 joints
+    at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS, "A prior along a hinge's axis")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -342,7 +357,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma)
+                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

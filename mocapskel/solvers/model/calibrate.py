@@ -365,6 +365,7 @@ def refine_skeleton(
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
     prior_weights: np.ndarray | None = None,
     like_bones: list[tuple[int, int, float]] | None = None,
+    hold_weights: dict[int, tuple[float, float]] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -399,6 +400,9 @@ def refine_skeleton(
     like_bones : (a, b, weight) for two child segments whose offsets from their parents' origins (their
         parents' bones) should be as long as each other: ``weight`` (whole fit) x the squared difference of
         their lengths, each length linearised along its direction at the start.
+    hold_weights : {child segment: (weight relative to its parent's markers, to its own)} for the joints of
+        ``hold_along``: the hold's weight for the whole fit, joint by joint (a Gaussian of sigma against marker
+        noise sigma_n weighs sigma_n^2 / sigma^2), instead of ``hold_weight`` per frame for all.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -422,8 +426,15 @@ def refine_skeleton(
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
-        Ac = _joint_prior_operator(pr, parent, {c})
+        if hold_weights is None:
+            Ac = _joint_prior_operator(pr, parent, {c})
+        else:
+            wc = np.zeros((S, 2))
+            wc[c] = hold_weights[c]
+            Ac = _joint_prior_operator(pr, parent, {c}, weights=wc)
         rows.extend(a @ Ac[k : k + 3] for k in range(0, Ac.shape[0], 3))
+    if hold_weights is not None:
+        k_hold = 1.0
     Hh = np.array(rows).reshape(-1, ng)
     if anchor is None:
         g0 = _pack(pr, d, l)

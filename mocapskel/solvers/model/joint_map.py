@@ -16,7 +16,7 @@ hinge with a marker over its axis one limb half-width inside that marker along t
 marker sitting outside the bone, as the prior's mean). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
-        [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2]
+        [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2] [+ sum_hinges,s (a_c . (joint_cs - mean_cs))^2 / sigma_hs^2]
 
 over the refinement's n frames (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` with
 ``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
@@ -35,6 +35,11 @@ markers' residuals in their segments' frames, measured from the take (:func:`res
 Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
 differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
+Hinges whose place along their axis the mean knows (optional, ``hinge_scale`` > 0: a marker over the axis,
+the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``): a second Gaussian
+along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
+the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
+
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
 posterior is kept.
@@ -49,10 +54,14 @@ from ...artifacts import Skeleton
 from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import refine_skeleton
 from ..rules.deepen import deepen_joints
+from ..rules.leaf_hinges import centre_leaf_hinges
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from ..rest_pose import _rest_markers
 from ..rigid_shape import procrustes_shape
+from ..joints.hinges import _hinge_direction, _relative_rotations
+from ..rest_pose import _bone_line
+from ..rotations import segments_seen
 
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
 #: this, so that a noise-free take does not turn the priors' weights to zero.
@@ -170,9 +179,31 @@ def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
     return out
 
 
+def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: float,
+                  scale: float, unit: float, only: set[int]) -> tuple[dict[int, np.ndarray], dict[int, tuple[float, float]]]:
+    """({child: hinge axis at rest}, {child: (weight in its parent's frame, in its own)}): a second prior on
+    every joint whose relative rotations ``rot`` turn about one axis (:func:`_hinge_direction`, the child's
+    twist about its bone left out), along that axis only, of sigma ``scale`` times its segments' sizes
+    (:func:`prior_sigmas` of ``centre``), weighed against the data's ``unit`` (the noise variance per frame)."""
+    seen = segments_seen(start.marker_segment, len(start.names), pts)
+    sig = prior_sigmas(centre, scale)
+    hold, w = {}, {}
+    for c in sorted(only):
+        rel = _relative_rotations(rot, int(start.parent[c]), c, seen)
+        if rel is None or not np.isfinite(sig[c]).any():
+            continue
+        line = _bone_line(centre, c)
+        ax = _hinge_direction(rel, hinge_ratio, None if line is None else line[1])
+        if ax is None:
+            continue
+        hold[c] = ax
+        w[c] = tuple(float(unit / s**2) if np.isfinite(s) else 0.0 for s in sig[c])
+    return hold, w
+
+
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
-               bone_sigma: float = 0.0) -> Skeleton:
+               bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -189,8 +220,10 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     c = _centres_by_edges(start, centres)
     pose = solve(start, pts[use], c[use])
     centre = start
-    if mean == "deepened":
+    if mean in ("deepened", "deepened+leaf"):
         centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
+    if mean == "deepened+leaf":
+        centre = centre_leaf_hinges(centre, hinge_ratio)
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
@@ -204,12 +237,21 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             if sb > 0:
                 ties.append((x, y, inflate * sn**2 / sb**2))
                 tie_sig.append(sb)
+    hold, hold_w = {}, {}
+    if hinge_scale > 0:
+        placed = {start.names.index(n) for k in ("deepened", "leaf_centred") for n in centre.info.get(k, {})}
+        per = start.joints.info.get("per_joint") or []  # hinges the joints stage placed on their axis
+        for e, (a_, b_) in enumerate(start.joints.topology.edges):
+            if hinge_placed and e < len(per) and per[e].get("hinge"):
+                placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
+        hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
-                          anchor=(centre.origin, centre.marker_local), like_bones=ties)
+                          anchor=(centre.origin, centre.marker_local), like_bones=ties,
+                          hold_along=hold, hold_weights=hold_w)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
-           + float(np.sum(np.log(tie_sig))))
+           + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),

@@ -42,14 +42,15 @@ def _half_width(skel: Skeleton, origin: np.ndarray, c: int, point: np.ndarray, p
     """(half-width, length) of the limbs on either side of segment ``c``'s joint put at ``point``
     (``origin`` the skeleton's rest origins otherwise): the mean of :func:`_limb_radius` of the parent
     and of ``c`` (markers ``skip`` left out), and the shorter of their bone lengths. None when one of
-    them gives none, the two disagree by more than a factor of 2, or the half-width is more than
-    ``LIMB_WIDTH`` of the length (no limb has it)."""
+    them gives none, or the half-width is more than ``LIMB_WIDTH`` of the length (no limb has it). Each
+    limb's may rest on one marker, and the two may differ by more than a factor of 2 (a thigh marker on
+    the muscle, a shin marker on the bone); their mean is the joint's."""
     lv = origin.copy()
     lv[c] = point
     at = replace(skel, origin=lv)
     p = int(skel.parent[c])
     radii = [r for s_ in (p, c) if (r := _limb_radius(at, s_, pos, skip)) is not None]
-    if len(radii) < 2 or max(radii) > 2.0 * min(radii):
+    if len(radii) < 2:
         return None
     r = float(np.mean(radii))
     length = min(line[2] for s_ in (p, c) if (line := _bone_line(at, s_)) is not None)
@@ -88,7 +89,7 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
     centre, the centre is moved along the axis, away from the marker towards the subject's middle (as
     most of the refinement's frames have it: :func:`_inward`), to one limb half-width from it. The half-width is the median distance of the two limbs' other
     markers from their bone lines, drawn through the axis at the level of that marker; both limbs
-    must give one and agree within a factor of 2 (a leaf, such as a foot or a forearm that carries
+    must give one (a leaf, such as a foot or a forearm that carries
     the hand's markers, has no bone line: ankles deepened by the shank's half-width alone came out
     from 25 mm nearer to 51 mm farther from the truth on generated kicks and walks). A second marker
     on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
