@@ -137,16 +137,17 @@ class Params:
     hinge_scale: float = 0.01
     """With ``joint_model="map"``: a second prior, along the axis only, on the hinges whose place along their
     axis the prior's mean knows (a marker over the axis, ``prior_mean``'s deepening; a limb's end segment's
-    markers' middle; the joints stage's placement on the axis of two segments of three or more markers), its
-    standard deviation this multiple of the segment's size (as ``prior_scale``'s); 0: none. Along such an
+    markers' middle; with ``hinge_placed``, also the joints stage's placement on the axis), its standard
+    deviation this multiple of the segment's size (as ``prior_scale``'s); 0: none. Along such an
     axis the markers' information is the small turns about the other axes, which skin motion makes as well.
     0.01 (a few mm) measured better than 0.03 and 0.1 on the tuning seeds and about as well as 0.003
     (BENCHMARKS, "A prior along a hinge's axis")."""
     hinge_placed: bool = False
     """With ``hinge_scale``: the joints stage's hinges placed on their axis (its point nearest the two segments'
-    markers) get the second prior too. Off: on the generated checking half it cost 0.9 mm (a kick's hip held
-    along its flexion axis 198 mm from the truth), though on opensim_test_walking it matched 6 of 6 joints
-    at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS, "A prior along a hinge's axis")."""
+    markers) get the second prior too. Off: on the generated checking half it cost 0.9 mm (a reach's still
+    legs held where the joints stage put them: found grouping, seed 6, 25.6 -> 41.5 mm), though on
+    opensim_test_walking it matched 6 of 6 joints at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS,
+    "A prior along a hinge's axis")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""

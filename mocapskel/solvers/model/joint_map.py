@@ -57,10 +57,9 @@ from ..rules.deepen import deepen_joints
 from ..rules.leaf_hinges import centre_leaf_hinges
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
-from ..rest_pose import _rest_markers
+from ..rest_pose import _bone_line, _rest_markers
 from ..rigid_shape import procrustes_shape
 from ..joints.hinges import _hinge_direction, _relative_rotations
-from ..rest_pose import _bone_line
 from ..rotations import segments_seen
 
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
@@ -182,8 +181,8 @@ def like_bone_pairs(skel: Skeleton) -> list[tuple[int, int]]:
 def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: float,
                   scale: float, unit: float, only: set[int]) -> tuple[dict[int, np.ndarray], dict[int, tuple[float, float]]]:
     """({child: hinge axis at rest}, {child: (weight in its parent's frame, in its own)}): a second prior on
-    every joint whose relative rotations ``rot`` turn about one axis (:func:`_hinge_direction`, the child's
-    twist about its bone left out), along that axis only, of sigma ``scale`` times its segments' sizes
+    each joint of ``only`` whose relative rotations ``rot`` turn about one axis (:func:`_hinge_direction`, the
+    child's twist about its bone left out), along that axis only, of sigma ``scale`` times its segments' sizes
     (:func:`prior_sigmas` of ``centre``), weighed against the data's ``unit`` (the noise variance per frame)."""
     seen = segments_seen(start.marker_segment, len(start.names), pts)
     sig = prior_sigmas(centre, scale)

@@ -87,10 +87,10 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
     twist) and a marker of its two segments within one limb half-width of that axis and, along it,
     within a quarter of the shorter limb's length (or one and a half half-widths, if more) of the
     centre, the centre is moved along the axis, away from the marker towards the subject's middle (as
-    most of the refinement's frames have it: :func:`_inward`), to one limb half-width from it. The half-width is the median distance of the two limbs' other
-    markers from their bone lines, drawn through the axis at the level of that marker; both limbs
-    must give one (a leaf, such as a foot or a forearm that carries
-    the hand's markers, has no bone line: ankles deepened by the shank's half-width alone came out
+    most of the refinement's frames have it: :func:`_inward`), to one limb half-width from it. The
+    half-width is the mean of the median distances of the two limbs' other markers from their bone
+    lines, drawn through the axis at the level of that marker; both limbs must give one (a leaf, such
+    as a foot or a forearm that carries the hand's markers, has no bone line: ankles deepened by the shank's half-width alone came out
     from 25 mm nearer to 51 mm farther from the truth on generated kicks and walks). A second marker
     on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
     along it from the first (a medial and a lateral knee marker), puts it between the two, wherever
