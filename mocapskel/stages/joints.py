@@ -207,10 +207,11 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             if params.hold_refine and pose is not None and np.isfinite(costs[k]):
                 centres[:, e] = held_refined(centres[:, e], both, w, pose, diag)
             methods[e], done[e] = name, True
-            per_joint[e]["why"] = why + (f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}, each held"
-                                         f" fixed in the frame of the segment of {max(na, nb)} markers"
-                                         if len(cands) > 1 and pose is not None else
-                                         f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}" if len(cands) > 1 else "")
+            if len(cands) > 1:
+                why += f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}"
+                if pose is not None:
+                    why += f", each held fixed in the frame of the segment of {max(na, nb)} markers"
+            per_joint[e]["why"] = why
             if name == "jmv" and not fit.ok:
                 per_joint[e]["note"] = fit.reason
     if params.method == "jmv":
@@ -272,14 +273,14 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             warnings.append(f"joint {a}-{b} could not be placed in any frame")
     info = {"version": VERSION, "method": params.method, "per_joint": per_joint, "warnings": warnings}
     alt = None
-    jmv_placed = [e for e in alt_from_tree if not np.array_equal(centres[:, e], tree.centres[:, e], equal_nan=True)]
-    if jmv_placed:
+    not_framework = [e for e in alt_from_tree if not np.array_equal(centres[:, e], tree.centres[:, e], equal_nan=True)]
+    if not_framework:
         # the joints placed by JMV or the sphere fit (or moved to the least held cost) against the
         # framework's, which, propagated through rigid bodies, keep every segment's markers and joints
         # rigid together: the better start for the skeleton's fit on many takes. The rigid stage tries both.
         alt = centres.copy()
-        alt[:, jmv_placed] = tree.centres[:, jmv_placed]
-        info["alt_start"] = [int(e) for e in jmv_placed]
+        alt[:, not_framework] = tree.centres[:, not_framework]
+        info["alt_start"] = [int(e) for e in not_framework]
     out = Joints(topology=topology, centres=centres, method=tuple(methods), residual=residual, info=info,
                  alt_centres=alt)
     if unplaced:
