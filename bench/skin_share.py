@@ -5,14 +5,10 @@ skeleton the take does not have, against noise the model describes.
     python -m bench.skin_share --only real     # one half
 
 Each take is fitted up to the rigid stage with the model's MAP (``rigid.Params(joint_model="map")``;
-generated takes with their true grouping and tree handed in). On the refinement's frames, every marker's
-residual (observed minus the fitted skeleton's, in its segment's axes) is regressed on its segment's joint
-angles (the rotation vectors to its parent and children, centred) and their products (a quadratic in the
-angles). The share is the variance that regression explains beyond what as many random regressors would
-(the adjusted R^2, pooled over markers). Noise that does not depend on the pose gives about 0; skin moved by
-the joint angles gives the part of it that a shifted joint centre cannot absorb (a joint centre moved by c
-moves a marker by (I - R(theta)) c, linear in theta for small turns: that part of the skin's motion is taken
-into the joint's place and never seen in the residual).
+generated takes with their true grouping and tree handed in), and its refinement's residual measured by
+:func:`mocapskel.solvers.model.skin.angle_share` (the report's ``uncertainty.skin_share`` measures the fit's
+final skeleton the same way): noise that does not depend on the pose gives about 0; skin moved by the joint
+angles gives the part of it that a shifted joint centre cannot absorb.
 """
 from __future__ import annotations
 
@@ -35,42 +31,19 @@ REAL = ("realref/opensim_test_walking.c3d", "realref/cmu_16_07.c3d", "realref/ki
 
 
 def angle_share(skel) -> dict:
-    """{"share": pooled adjusted R^2, "residual_mm": rms residual length, "frames": n} of a refined skeleton."""
+    """{"share": :func:`~mocapskel.solvers.model.skin.angle_share`, "residual_mm": rms residual length, "frames": n}
+    of a refined skeleton, on its refinement's frames."""
     from mocapskel.solvers.model.calibrate import _Problem
-    from mocapskel.solvers.rotations import matrix_to_rotvec
+    from mocapskel.solvers.model.skin import angle_share as share
 
     use, R, p = skel.pose_frames, skel.pose_rot, skel.pose_root
     obs = skel.joints.topology.segments.markers.points[use]
-    S = len(skel.parent)
     pr = _Problem(skel.parent, skel.marker_segment, obs)
-    d = np.zeros((S, 3))
+    d = np.zeros((len(skel.parent), 3))
     for c in pr.kids:
         d[c] = skel.origin[c] - skel.origin[skel.parent[c]]
-    _, _, x = pr.fk(p, R, d, skel.marker_local)
-    res = obs[:, pr.used] - x
-    total = explained = 0.0
-    for i, m in enumerate(pr.used):
-        s = int(skel.marker_segment[m])
-        r = np.einsum("fji,fj->fi", R[:, s], res[:, i])  # in the segment's axes
-        nbs = ([int(skel.parent[s])] if skel.parent[s] >= 0 else []) + [int(c) for c in np.flatnonzero(skel.parent == s)]
-        if not nbs:
-            continue
-        th = np.concatenate([matrix_to_rotvec(np.einsum("fji,fjk->fik", R[:, s], R[:, nb])) for nb in nbs], 1)
-        ok = np.isfinite(r).all(1) & np.isfinite(th).all(1)
-        th = th[ok] - th[ok].mean(0)
-        k = th.shape[1]
-        iu = np.triu_indices(k)
-        X = np.concatenate([np.ones((len(th), 1)), th, (th[:, :, None] * th[:, None, :])[:, iu[0], iu[1]]], 1)
-        y = r[ok]
-        n, q = X.shape
-        if n < 3 * q:
-            continue
-        beta, *_ = np.linalg.lstsq(X, y, rcond=None)
-        ss = float(((y - y.mean(0)) ** 2).sum())
-        se = float(((X @ beta - y.mean(0)) ** 2).sum())
-        total += ss
-        explained += se - ss * (q - 1) / (n - 1)  # less what q - 1 random regressors explain on average
-    return {"share": explained / total if total > 0 else float("nan"),
+    res = obs[:, pr.used] - pr.fk(p, R, d, skel.marker_local)[2]
+    return {"share": share(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, obs, R, p),
             "residual_mm": float(np.sqrt(3 * np.nanmean(res**2))), "frames": int(use.size)}
 
 

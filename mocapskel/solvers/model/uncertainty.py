@@ -60,6 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibrate import _exp, _hat, _Problem
+from .skin import angle_share
 from ..joint_moves import _repose
 from ..parallel import run_blocks
 from ..rotations import matrix_to_rotvec
@@ -525,7 +526,9 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     The poses are those of the refinement's frames; when ``skel`` differs from ``refined`` (the
     refinement's output, before rules that moved joints after it) they are solved again by IK with
     ``skel``, from the refinement's. Keys: ``prior`` (its scale and the threshold of ``set_by_prior``),
-    ``noise_mm`` and ``dof`` (the take's noise from the fit's residual), ``frames``, ``seconds`` and
+    ``noise_mm`` and ``dof`` (the take's noise from the fit's residual), ``frames``, ``skin_share`` (the share
+    of the residual the joint angles explain, :func:`~mocapskel.solvers.model.skin.angle_share`: skin that slides
+    with the joints, which the noise above does not describe; None where it cannot be measured), ``seconds`` and
     ``joints``: {child segment name: {sd_mm, directions, prior_share, prior_sd_mm, set_by_prior,
     frame, frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
     rest frame; ``lacks_rotation_about`` None unless set by the prior).
@@ -560,8 +563,10 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
             "turned_about": None if not np.isfinite(u.turned_about[k]).all() else np.round(u.turned_about[k], 4).tolist(),
             "lacks_rotation_about": np.round(u.lacks_axis[k], 4).tolist() if prior_set else None,
         }
+    share = angle_share(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, pts, rot, root)
     return {"prior": {"sd_per_segment_size": PRIOR_SCALE, "set_by_prior_above": SET_BY_PRIOR},
             "noise_mm": round(u.noise_sd, 4), "dof": u.dof, "frames": u.frames,
+            "skin_share": round(float(share), 3) if np.isfinite(share) else None,
             "seconds": round(time.perf_counter() - t, 4), "joints": joints}
 
 
