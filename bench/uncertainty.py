@@ -199,7 +199,7 @@ def real(takes: list[str]) -> None:
         js = [j for j in rep.get("joints", []) if j.get("uncertainty")]
         big = sorted(((max(j["uncertainty"]["sd_mm"]), j["child"]) for j in js), reverse=True)[:3]
         said = [w for w in rep["warnings"] if "set by the prior" in w]
-        print(f"- {path.split('/')[-1]}: noise {unc.get('noise_mm')} mm, {len(js)} joints, {unc.get('seconds')} s of"
+        print(f"- {path.split('/')[-1]}: noise {unc.get('noise_mm')} mm, skin share {unc.get('skin_share')}, {len(js)} joints, {unc.get('seconds')} s of"
               f" {rep['seconds'].get('total', 0):.2f} s; largest sd: " + ", ".join(f"{n} {v:.1f} mm" for v, n in big)
               + f"; set by the prior: {len(said)}")
         for w in said:
