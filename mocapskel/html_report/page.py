@@ -149,19 +149,19 @@ def _uncertainty(report: dict) -> str:
         if not u:
             continue
         rows.append([_fmt(j.get("parent")), _fmt(j.get("child")), " / ".join(f"{x:.3g}" for x in u["sd_mm"]),
-                     " / ".join(f"{x:.2f}" for x in u["prior_share"]), _fmt(u["prior_sd_mm"]),
+                     _fmt(u.get("skin_sd_mm")), " / ".join(f"{x:.2f}" for x in u["prior_share"]), _fmt(u["prior_sd_mm"]),
                      "yes" if u["set_by_prior"] else "no", _fmt(u.get("motion_to_fix"))])
     prior = unc.get("prior") or {}
     note = (f'<p class="note">Each joint\'s position relative to its child segment\'s markers: the standard deviation '
             f"along its three principal directions (the Laplace approximation of the skeleton model, the take's noise "
             f"{_fmt(unc.get('noise_mm'))} mm per coordinate from {_fmt(unc.get('frames'))} frames; of the residual, a share of "
             f"{_fmt(unc.get('skin_share'))} follows the joint angles: skin that slides with the joints, which that noise does not "
-            "describe and which biases the joints beyond these regions where it is large), and the share of the "
+            "describe; the standard deviations include how far such skin can have moved each joint, its skin sd), and the share of the "
             f"precision along each that comes from the prior (sd {_fmt(prior.get('sd_per_segment_size'))} of the child "
             f"segment's size); a joint is set by the prior where that share exceeds {_fmt(prior.get('set_by_prior_above'))}. "
             "The 3-D view draws each joint's principal axes, two sd long.</p>")
     return (_plot_uncertainty(report) + note
-            + _table(["parent", "child", "sd (mm)", "prior share", "prior sd (mm)", "set by prior", "to place it"], rows))
+            + _table(["parent", "child", "sd (mm)", "skin sd (mm)", "prior share", "prior sd (mm)", "set by prior", "to place it"], rows))
 
 
 def _warnings(report: dict) -> str:

@@ -1,12 +1,15 @@
-"""How much of a fit's marker residual follows the joint angles.
+"""How much of a fit's marker residual follows the joint angles, and how far such skin motion can move a joint.
 
 The model explains the markers by rigid segments plus noise independent of the pose. Skin that slides with
 the joints breaks that: its motion is a function of the joint angles, the same in every frame of the same pose,
 and does not average out over frames. Part of it is never seen in the residual (a joint centre moved by c moves
 a marker by (I - R(theta)) c, about linear in the angle, and the fit takes that part into the joint's place);
-the rest is: :func:`angle_share` measures that rest, from the take alone.
+the rest is: :func:`skin_motion` measures that rest, from the take alone, and from it the size of the part
+that moved the joint (:attr:`SkinMotion.joint_sd`).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,19 +17,52 @@ from ..rotations import matrix_to_rotvec
 from .calibrate import _Problem
 
 
-def angle_share(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
-                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray) -> float:
-    """The share of the residual's variance that the joint angles explain (0: none; NaN: nothing to measure).
+@dataclass(frozen=True)
+class SkinMotion:
+    """share : the share of the residual's variance that the joint angles explain (NaN: nothing to measure).
+    explained : (S,) per segment, the variance per coordinate (mm^2) of its markers' residual that its joint
+        angles explain (NaN where not measured).
+    angle_var : (S,) per child segment, the variance (rad^2) of its joint's turn about its mean over the frames
+        (the trace of the rotation vectors' covariance; NaN for the root or where never seen)."""
+
+    share: float
+    explained: np.ndarray
+    angle_var: np.ndarray
+
+    def joint_sd(self, parent: np.ndarray) -> np.ndarray:
+        """(S,) mm: how far skin that slides with child c's joint angle can have moved that joint unseen, the
+        standard deviation of an isotropic Gaussian; 0 where nothing is measured.
+
+        A marker's skin motion taken as a theta + b (theta^2 - <theta^2>) in the joint's turn theta: the
+        quadratic part shows in the residual, with variance 2 b^2 Theta^4 for a turn of variance Theta^2
+        (``explained``, the mean over the joint's two segments); the linear part does not, the fit moves the
+        joint by about a instead. The assumption: a is as large as b per radian (the skin slides as far in
+        proportion as it curves over a radian of turn). So sd = sqrt(explained / 2) / Theta^2."""
+        parent = np.asarray(parent)
+        out = np.zeros(len(parent))
+        for c in np.flatnonzero(parent >= 0):
+            e = self.explained[[c, int(parent[c])]]
+            e = e[np.isfinite(e)]
+            t2 = self.angle_var[c]
+            if e.size and np.isfinite(t2) and t2 > 0:
+                out[c] = float(np.sqrt(max(float(e.mean()), 0.0) / 2.0) / t2)
+        return out
+
+
+def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
+                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray) -> SkinMotion:
+    """The residual's part that the joint angles explain, from the take alone (see :class:`SkinMotion`).
 
     parent, marker_segment, origin, marker_local : a skeleton (origins and marker offsets in the rest axes).
     observed : (F, M, 3) markers on the frames posed by ``rot`` (F, S, 3, 3) and ``root_pos`` (F, 3).
 
     Every marker's residual, in its segment's axes, is regressed on that segment's joint angles (the rotation
     vectors to its parent and children, centred) and their products; the explained variance less what as
-    many random regressors explain on average (the adjusted R^2), pooled over markers. Markers of a segment
-    without joints, or seen in fewer than three times as many frames as there are regressors, are left out.
+    many random regressors explain on average (the adjusted R^2). Markers of a segment without joints, or seen
+    in fewer than three times as many frames as there are regressors, are left out.
     """
     parent = np.asarray(parent)
+    marker_segment = np.asarray(marker_segment)
     S = len(parent)
     pr = _Problem(parent, marker_segment, observed)
     d = np.zeros((S, 3))
@@ -35,14 +71,30 @@ def angle_share(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
     _, _, x = pr.fk(root_pos, rot, d, marker_local)
     res = observed[:, pr.used] - x
     total = explained = 0.0
+    per_seg = np.full(S, np.nan)
+    angle_var = np.full(S, np.nan)
+    turns: dict[int, np.ndarray] = {}  # child c: its joint's rotation vectors, in c's axes
+
+    def turn(c: int) -> np.ndarray:
+        if c not in turns:
+            turns[c] = matrix_to_rotvec(np.einsum("fji,fjk->fik", rot[:, int(parent[c])], rot[:, c]))
+        return turns[c]
+
+    for c in pr.kids:
+        th = turn(int(c))
+        th = th[np.isfinite(th).all(1)]
+        if th.shape[0] > 1:
+            angle_var[c] = float(np.sum(th.var(0)))
     for s in np.unique(marker_segment[pr.used]):
         s = int(s)
-        nbs = ([int(parent[s])] if parent[s] >= 0 else []) + [int(c) for c in np.flatnonzero(parent == s)]
-        if not nbs:
+        kids = [int(c) for c in np.flatnonzero(parent == s)]
+        if parent[s] < 0 and not kids:
             continue
-        th = np.concatenate([matrix_to_rotvec(np.einsum("fji,fjk->fik", rot[:, s], rot[:, nb])) for nb in nbs], axis=1)
+        th = np.concatenate(([turn(s)] if parent[s] >= 0 else []) + [turn(c) for c in kids], axis=1)
         seen = np.isfinite(th).all(1)
         iu = np.triu_indices(th.shape[1])
+        seg_ss = seg_ex = 0.0
+        seg_n = 0
         for i in np.flatnonzero(marker_segment[pr.used] == s):
             r = np.einsum("fji,fj->fi", rot[:, s], res[:, i])  # in the segment's axes
             ok = seen & np.isfinite(r).all(1)
@@ -56,6 +108,19 @@ def angle_share(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             b = X.T @ y
             beta = np.linalg.lstsq(X.T @ X, b, rcond=None)[0]
             ss = float((y * y).sum())
-            total += ss
-            explained += float((b * beta).sum()) - ss * (q - 1) / (n - 1)
-    return explained / total if total > 0 else float("nan")
+            ex = float((b * beta).sum()) - ss * (q - 1) / (n - 1)
+            seg_ss += ss
+            seg_ex += ex
+            seg_n += 3 * n
+        if seg_n:
+            per_seg[s] = max(seg_ex, 0.0) / seg_n
+            total += seg_ss
+            explained += seg_ex
+    return SkinMotion(share=explained / total if total > 0 else float("nan"), explained=per_seg, angle_var=angle_var)
+
+
+def angle_share(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
+                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray) -> float:
+    """:func:`skin_motion`'s share alone: 0 where the residual does not follow the joint angles, NaN where
+    nothing can be measured."""
+    return skin_motion(parent, marker_segment, origin, marker_local, observed, rot, root_pos).share

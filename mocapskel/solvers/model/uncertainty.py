@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibrate import _exp, _hat, _Problem
-from .skin import angle_share
+from .skin import skin_motion
 from ..joint_moves import _repose
 from ..parallel import run_blocks
 from ..rotations import matrix_to_rotvec
@@ -474,20 +474,24 @@ def joint_uncertainty(
     C = (A @ Z).reshape(K, 3, K, 3)
     cov = C[np.arange(K), :, np.arange(K), :]  # (K, 3, 3)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
-    ev, vec = np.linalg.eigh(cov)
-    ev, vec = np.maximum(ev[:, ::-1], 0.0), vec[:, :, ::-1]
-    sd = np.sqrt(ev)
-    directions = vec.transpose(0, 2, 1)
-    # each direction's sign: its largest component positive (a stable, readable choice)
-    big = np.take_along_axis(directions, np.abs(directions).argmax(2)[..., None], 2)[..., 0]
-    directions = directions * np.where(big < 0, -1.0, 1.0)[..., None]
-    share = np.clip(ev / prior_sd[:, None] ** 2, 0.0, 1.0)
+    sd, directions = _principal(cov)
+    share = np.clip(sd**2 / prior_sd[:, None] ** 2, 0.0, 1.0)
     turned, lacks = _axes(pr, R, l, kids, directions[:, 0])
     return JointUncertainty(
         kids=kids, cov=cov, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
         frame=frame, frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
         noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]),
     )
+
+
+def _principal(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3) standard deviations, largest first, and (K, 3, 3) their unit directions (rows) of covariances
+    (K, 3, 3), each direction's largest component positive (a stable, readable sign)."""
+    ev, vec = np.linalg.eigh(cov)
+    ev, vec = np.maximum(ev[:, ::-1], 0.0), vec[:, :, ::-1]
+    directions = vec.transpose(0, 2, 1)
+    big = np.take_along_axis(directions, np.abs(directions).argmax(2)[..., None], 2)[..., 0]
+    return np.sqrt(ev), directions * np.where(big < 0, -1.0, 1.0)[..., None]
 
 
 def _axes(pr: _Problem, R: np.ndarray, l: np.ndarray, kids: np.ndarray, free: np.ndarray
@@ -527,11 +531,14 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     refinement's output, before rules that moved joints after it) they are solved again by IK with
     ``skel``, from the refinement's. Keys: ``prior`` (its scale and the threshold of ``set_by_prior``),
     ``noise_mm`` and ``dof`` (the take's noise from the fit's residual), ``frames``, ``skin_share`` (the share
-    of the residual the joint angles explain, :func:`~mocapskel.solvers.model.skin.angle_share`: skin that slides
+    of the residual the joint angles explain, :class:`~mocapskel.solvers.model.skin.SkinMotion`: skin that slides
     with the joints, which the noise above does not describe; None where it cannot be measured), ``seconds`` and
-    ``joints``: {child segment name: {sd_mm, directions, prior_share, prior_sd_mm, set_by_prior,
+    ``joints``: {child segment name: {sd_mm, directions, skin_sd_mm, prior_share, prior_sd_mm, set_by_prior,
     frame, frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
-    rest frame; ``lacks_rotation_about`` None unless set by the prior).
+    rest frame; ``lacks_rotation_about`` None unless set by the prior). ``sd_mm`` and ``directions`` are the
+    principal axes of the model's posterior covariance plus ``skin_sd_mm``^2 I, how far skin that slides with
+    the joint's angle can have moved it unseen (:meth:`~mocapskel.solvers.model.skin.SkinMotion.joint_sd`);
+    ``prior_share`` is the prior's share of the model's precision along each of them.
     """
     t = time.perf_counter()
     if skel.pose_rot is None or skel.pose_frames is None or skel.joints is None:
@@ -549,13 +556,23 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
                           ref_frame=ref, frames_per_independent=frames_per_independent(skel))
     if u is None:
         return None
+    skin = skin_motion(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, pts, rot, root)
+    # at most the joint's largest sd of the model: skin cannot leave it surer, and a joint that barely turns
+    # (a reach's still leg) shows too little of its skin's curve to say more
+    skin_sd = np.zeros(len(skel.parent))
+    skin_sd[u.kids] = np.minimum(skin.joint_sd(skel.parent)[u.kids], u.sd[:, 0])
+    sd, directions = _principal(u.cov + (skin_sd[u.kids] ** 2)[:, None, None] * np.eye(3))
+    # the prior's share along those directions, of the model's own precision (the skin's part is no prior's)
+    lam = np.einsum("kai,kij,kaj->ka", directions, np.linalg.pinv(u.cov), directions)
+    prior_share = np.clip((1.0 / u.prior_sd[:, None] ** 2) / np.maximum(lam, 1e-300), 0.0, 1.0)
     joints = {}
     for k, c in enumerate(u.kids.tolist()):
         prior_set = bool(u.set_by_prior[k])
         joints[skel.names[c]] = {
-            "sd_mm": [round(float(x), 3) for x in u.sd[k]],
-            "directions": np.round(u.directions[k], 4).tolist(),
-            "prior_share": [round(float(x), 4) for x in u.prior_share[k]],
+            "sd_mm": [round(float(x), 3) for x in sd[k]],
+            "directions": np.round(directions[k], 4).tolist(),
+            "skin_sd_mm": round(float(skin_sd[c]), 2),
+            "prior_share": [round(float(x), 4) for x in prior_share[k]],
             "prior_sd_mm": round(float(u.prior_sd[k]), 1),
             "set_by_prior": prior_set,
             "frame": skel.names[int(u.frame[k])],
@@ -563,7 +580,7 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
             "turned_about": None if not np.isfinite(u.turned_about[k]).all() else np.round(u.turned_about[k], 4).tolist(),
             "lacks_rotation_about": np.round(u.lacks_axis[k], 4).tolist() if prior_set else None,
         }
-    share = angle_share(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, pts, rot, root)
+    share = skin.share
     return {"prior": {"sd_per_segment_size": PRIOR_SCALE, "set_by_prior_above": SET_BY_PRIOR},
             "noise_mm": round(u.noise_sd, 4), "dof": u.dof, "frames": u.frames,
             "skin_share": round(float(share), 3) if np.isfinite(share) else None,
