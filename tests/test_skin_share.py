@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocapskel import evaluate, pipeline
-from mocapskel.solvers.model.skin import angle_share
+from mocapskel.solvers.model.skin import angle_share, skin_motion
 from mocapskel.solvers.rotations import rotvec_to_matrix
 
 
@@ -57,6 +57,12 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
         expected = 3 * s_mm**2 / (6 * sigma**2 + 3 * s_mm**2)
         got = angle_share(parent, seg, origin, local, moved, rot, root)
         assert abs(got - expected) < 0.04, (got, expected)
+        # per segment: the shank's markers' explained variance per coordinate is the skin's, the thigh's none;
+        # the knee's angular variance is its turn's
+        sm = skin_motion(parent, seg, origin, local, moved, rot, root)
+        assert abs(sm.explained[1] - s_mm**2) < 0.1 * s_mm**2, (sm.explained, s_mm**2)
+        assert sm.explained[0] < 0.05 * s_mm**2
+        assert np.isclose(sm.angle_var[1], np.sum(knee.var(0)), rtol=1e-6)
     # unseen markers are left out of their frames, not taken as zeros
     holed = noisy.copy()
     holed[rng.random(holed.shape[:2]) < 0.1] = np.nan
