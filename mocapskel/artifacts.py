@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
@@ -366,6 +367,36 @@ def _need(cond: bool, msg: str) -> None:
         raise _Invalid(msg)
 
 
+#: A valid BVH joint name (the whole name must match).
+NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def check_names(names) -> None:
+    """Raise ValueError unless ``names`` are valid BVH joint names.
+
+    Valid: each matches ``[A-Za-z_][A-Za-z0-9_]*``, all unique, none a prefix
+    of another (importers that match bones by prefix confuse such names).
+    A skeleton's segment names are such names (the pipeline makes them so, and
+    ``--names segments`` writes them as they are).
+    """
+    bad = [n for n in names if not NAME_PATTERN.match(n)]
+    if bad:
+        raise ValueError(f"invalid BVH joint names {bad[:5]!r}: use [A-Za-z_][A-Za-z0-9_]* (see sanitize_names)")
+    srt = sorted(names)
+    for a, b in zip(srt, srt[1:]):
+        if a == b:
+            raise ValueError(f"duplicate BVH joint name {a!r} (see sanitize_names)")
+        if b.startswith(a):
+            raise ValueError(f"BVH joint name {a!r} is a prefix of {b!r} (see sanitize_names)")
+
+
+def _bvh_names(names: tuple) -> None:
+    try:
+        check_names(names)
+    except ValueError as e:
+        raise _Invalid(f"skeleton.names: {e}") from None
+
+
 def _array(obj: Any, name: str, shape: tuple, kinds: str = "f", *, finite: bool = False, limit: float | None = None,
            inf_ok: bool = False) -> np.ndarray:
     """Check field ``name``: an ndarray of dtype kind in ``kinds`` and ``shape`` (None: any length).
@@ -510,6 +541,7 @@ def validate(obj: Any) -> None:
             names = _strings(o, "names", S if has_joints else None, unique=True)
             S = len(names)
             _need(S >= 1, "skeleton without segments")
+            _bvh_names(names)
             parent = _array(o, "parent", (S,), "iu")
             _tree(parent.astype(np.int64), "skeleton.parent")
             _array(o, "origin", (S, 3), finite=True, limit=_MAX_MM)

@@ -232,6 +232,21 @@ def test_artifact_with_generated_arrays(genuine: dict[str, Path], data) -> None:
     assert_clean_end(invoke("export", f, "-o", TMP / "gen.bvh", "--no-cache"))
 
 
+@pytest.mark.parametrize("names", [["", "00", "0"], ["Hip", "Hips", "Knee"]])
+def test_an_artifact_whose_segment_names_no_bvh_can_hold_is_damaged(genuine: dict[str, Path], names) -> None:
+    """Segment names the pipeline never makes (empty, a leading digit, one the prefix of another): the artifact is
+    reported damaged (exit 3) by export, not an unexpected error (found by the fuzz above)."""
+    arrs = artifact_files.read_arrays(genuine["motion"])
+    n = len(arrs["skeleton/names__strs__"])
+    arrs["skeleton/names__strs__"] = np.array((names * n)[:n] if n > 3 else names[:n])
+    f = TMP / "names.npz"
+    f.write_bytes(artifacts.arrays_bytes(arrs))
+    r = invoke("export", f, "-o", TMP / "names.bvh", "--no-cache")
+    assert_clean_end(r)
+    assert r.exit_code == 3 and "damaged mocapskel artifact" in r.stderr and "skeleton.names" in r.stderr, r.stderr
+    assert not (TMP / "names.bvh").exists()
+
+
 @FUZZ
 @given(info=json_values, where=st.sampled_from(["info__json__", "skeleton/info__json__",
                                                  "skeleton/joints/topology/segments/markers/info__json__",

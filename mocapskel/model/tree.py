@@ -6,9 +6,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..artifacts import NAME_PATTERN, check_names  # noqa: F401 (the names' rule lives with the artifacts that hold them)
 
-#: A valid BVH joint name (the whole name must match).
-NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
 
 
 def depth_first_order(parent: np.ndarray) -> np.ndarray:
@@ -39,23 +39,6 @@ def depth_first_order(parent: np.ndarray) -> np.ndarray:
         out.append(s)
         stack.extend(reversed(children[s]))
     return np.asarray(out, dtype=np.int64)
-
-
-def check_names(names: Sequence[str]) -> None:
-    """Raise ValueError unless ``names`` are valid BVH joint names.
-
-    Valid: each matches ``[A-Za-z_][A-Za-z0-9_]*``, all unique, none a prefix
-    of another (importers that match bones by prefix confuse such names).
-    """
-    bad = [n for n in names if not NAME_PATTERN.match(n)]
-    if bad:
-        raise ValueError(f"invalid BVH joint names {bad[:5]!r}: use [A-Za-z_][A-Za-z0-9_]* (see sanitize_names)")
-    srt = sorted(names)
-    for a, b in zip(srt, srt[1:]):
-        if a == b:
-            raise ValueError(f"duplicate BVH joint name {a!r} (see sanitize_names)")
-        if b.startswith(a):
-            raise ValueError(f"BVH joint name {a!r} is a prefix of {b!r} (see sanitize_names)")
 
 
 def _clashes(name: str, others: Sequence[str]) -> bool:
