@@ -270,6 +270,19 @@ def _self_parent(doc):
     s["parent"] = s["name"]
 
 
+def _rename(i: int, new):
+    """Segment ``i`` renamed everywhere (its parent links and its markers) to ``new(old names)``."""
+    def edit(d):
+        old = d["segments"][i]["name"]
+        name = new([s["name"] for s in d["segments"]])
+        for s in d["segments"]:
+            s["name"] = name if s["name"] == old else s["name"]
+            s["parent"] = name if s.get("parent") == old else s.get("parent")
+        for m in d["markers"]:
+            m["segment"] = name if m["segment"] == old else m["segment"]
+    return edit
+
+
 SKELS = {
     "rest_frame_text": (_set(("rest_frame",), "first"), "rest_frame"),
     "rest_frame_null": (_set(("rest_frame",), None), "rest_frame"),
@@ -282,6 +295,10 @@ SKELS = {
     "segments_not_a_list": (_set(("segments",), {"a": 1}), "lists of objects"),
     "version_true": (_set(("version",), True), "version"),
     "repeated_names": (lambda d: d["segments"][1].update(name=d["segments"][0]["name"]), "repeated segment names"),
+    # names 'solve' would write into the BVH as they are
+    "name_leading_digit": (_rename(0, lambda names: "0" + names[0]), "no BVH joint name"),
+    "name_prefix_of_another": (_rename(1, lambda names: names[0] + "x"), "no BVH joint name"),
+    "name_with_a_space": (_rename(0, lambda names: "left hip"), "no BVH joint name"),
 }
 
 

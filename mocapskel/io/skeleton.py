@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Skeleton
+from ..artifacts import NAME_PATTERN, Skeleton
 from ..errors import InputError
 from .atomic import atomic_open
 
@@ -101,7 +101,7 @@ def read_skeleton(path: str | os.PathLike) -> Skeleton:
     """Read a subject skeleton file. Raises InputError when it is not one or is damaged.
 
     Checked: the JSON types, one root and parents that form a tree (no cycle, no
-    segment its own parent), unique segment names and marker labels, finite
+    segment its own parent), unique segment names that are BVH joint names and unique marker labels, finite
     offsets within 10 km, a rest frame that is a frame number.
     """
     from .paths import require_regular_file
@@ -135,6 +135,10 @@ def read_skeleton(path: str | os.PathLike) -> Skeleton:
             raise ValueError("segment names and marker labels must be non-empty text")
         if len(set(names)) != len(names):
             raise ValueError("repeated segment names")
+        bad = [n for n in names if not NAME_PATTERN.match(n) or any(o != n and o.startswith(n) for o in names)]
+        if bad:  # 'fit' writes BVH joint names; 'solve' writes them as they are
+            raise ValueError(f"segment name {bad[0][:40]!r} is no BVH joint name (letters, digits and _, not starting "
+                             "with a digit, none the start of another)")
         if len(set(labels)) != len(labels):
             raise ValueError("repeated marker labels")
         index = {n: i for i, n in enumerate(names)}
