@@ -6,7 +6,7 @@ skeleton the take does not have, against noise the model describes.
 
 Each take is fitted up to the rigid stage with the model's MAP (``rigid.Params(joint_model="map")``;
 generated takes with their true grouping and tree handed in), and its refinement's residual measured by
-:func:`mocapskel.solvers.model.skin.angle_share` (the report's ``uncertainty.skin_share`` measures the fit's
+:func:`mocapskel.solvers.model.skin.skin_motion` (the report's ``uncertainty.skin_share`` measures the fit's
 final skeleton the same way): noise that does not depend on the pose gives about 0; skin moved by the joint
 angles gives the part of it that a shifted joint centre cannot absorb.
 """
@@ -23,28 +23,21 @@ from bench.common import REPO, run_isolated, table
 
 SEEDS = (1, 2, 3, 4, 5, 6)
 MOTIONS = ("rom", "walk", "run", "kick", "reach")
-REALREF = REPO.parent / "shared" / "realref"
-REALDATA = REPO.parent / "shared" / "realdata"
 REAL = ("realref/opensim_test_walking.c3d", "realref/cmu_16_07.c3d", "realref/kinova_dynamique_pierre.c3d",
         "realdata/hdm05/HDM_bd_05-01_01_120.c3d", "realdata/joint-localization/fullbody_44Markers_clean_120fps.c3d",
         "realdata/joint-localization/arm-4-4-4_clean_30fps.c3d")
 
 
 def angle_share(skel) -> dict:
-    """{"share": :func:`~mocapskel.solvers.model.skin.angle_share`, "residual_mm": rms residual length, "frames": n}
-    of a refined skeleton, on its refinement's frames."""
-    from mocapskel.solvers.model.calibrate import _Problem
-    from mocapskel.solvers.model.skin import angle_share as share
+    """{"share": :func:`~mocapskel.solvers.model.skin.skin_motion`'s, "residual_mm": the refinement's rms marker
+    residual, "frames": n} of a refined skeleton, on its refinement's frames."""
+    from mocapskel.solvers.model.skin import skin_motion
 
-    use, R, p = skel.pose_frames, skel.pose_rot, skel.pose_root
+    use = skel.pose_frames
     obs = skel.joints.topology.segments.markers.points[use]
-    pr = _Problem(skel.parent, skel.marker_segment, obs)
-    d = np.zeros((len(skel.parent), 3))
-    for c in pr.kids:
-        d[c] = skel.origin[c] - skel.origin[skel.parent[c]]
-    res = obs[:, pr.used] - pr.fk(p, R, d, skel.marker_local)[2]
-    return {"share": share(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, obs, R, p),
-            "residual_mm": float(np.sqrt(3 * np.nanmean(res**2))), "frames": int(use.size)}
+    share = skin_motion(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, obs, skel.pose_rot,
+                        skel.pose_root).share
+    return {"share": share, "residual_mm": skel.info["refined"]["marker_rms_mm_after"], "frames": int(use.size)}
 
 
 def generated_case(motion: str, seed: int) -> dict:

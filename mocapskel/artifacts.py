@@ -371,8 +371,8 @@ def _need(cond: bool, msg: str) -> None:
 NAME_PATTERN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 
 
-def check_names(names) -> None:
-    """Raise ValueError unless ``names`` are valid BVH joint names.
+def name_problem(names) -> str | None:
+    """What keeps ``names`` from being BVH joint names, or None when they are.
 
     Valid: each matches ``[A-Za-z_][A-Za-z0-9_]*``, all unique, none a prefix
     of another (importers that match bones by prefix confuse such names).
@@ -381,20 +381,21 @@ def check_names(names) -> None:
     """
     bad = [n for n in names if not NAME_PATTERN.match(n)]
     if bad:
-        raise ValueError(f"invalid BVH joint names {bad[:5]!r}: use [A-Za-z_][A-Za-z0-9_]* (see sanitize_names)")
+        return f"invalid BVH joint names {bad[:5]!r}: use [A-Za-z_][A-Za-z0-9_]*"
     srt = sorted(names)
     for a, b in zip(srt, srt[1:]):
         if a == b:
-            raise ValueError(f"duplicate BVH joint name {a!r} (see sanitize_names)")
+            return f"duplicate BVH joint name {a!r}"
         if b.startswith(a):
-            raise ValueError(f"BVH joint name {a!r} is a prefix of {b!r} (see sanitize_names)")
+            return f"BVH joint name {a!r} is a prefix of {b!r}"
+    return None
 
 
-def _bvh_names(names: tuple) -> None:
-    try:
-        check_names(names)
-    except ValueError as e:
-        raise _Invalid(f"skeleton.names: {e}") from None
+def check_names(names) -> None:
+    """Raise ValueError unless ``names`` are valid BVH joint names (:func:`name_problem`)."""
+    problem = name_problem(names)
+    if problem:
+        raise ValueError(f"{problem} (see sanitize_names)")
 
 
 def _array(obj: Any, name: str, shape: tuple, kinds: str = "f", *, finite: bool = False, limit: float | None = None,
@@ -541,7 +542,8 @@ def validate(obj: Any) -> None:
             names = _strings(o, "names", S if has_joints else None, unique=True)
             S = len(names)
             _need(S >= 1, "skeleton without segments")
-            _bvh_names(names)
+            problem = name_problem(names)
+            _need(problem is None, f"skeleton.names: {problem}")
             parent = _array(o, "parent", (S,), "iu")
             _tree(parent.astype(np.int64), "skeleton.parent")
             _array(o, "origin", (S, 3), finite=True, limit=_MAX_MM)

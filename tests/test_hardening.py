@@ -296,9 +296,9 @@ SKELS = {
     "version_true": (_set(("version",), True), "version"),
     "repeated_names": (lambda d: d["segments"][1].update(name=d["segments"][0]["name"]), "repeated segment names"),
     # names 'solve' would write into the BVH as they are
-    "name_leading_digit": (_rename(0, lambda names: "0" + names[0]), "no BVH joint name"),
-    "name_prefix_of_another": (_rename(1, lambda names: names[0] + "x"), "no BVH joint name"),
-    "name_with_a_space": (_rename(0, lambda names: "left hip"), "no BVH joint name"),
+    "name_leading_digit": (_rename(0, lambda names: "0" + names[0]), "invalid BVH joint names"),
+    "name_prefix_of_another": (_rename(1, lambda names: names[0] + "x"), "is a prefix of"),
+    "name_with_a_space": (_rename(0, lambda names: "left hip"), "invalid BVH joint names"),
 }
 
 

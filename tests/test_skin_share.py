@@ -1,4 +1,4 @@
-"""How much of the residual follows the joint angles (``solvers.model.skin.angle_share``): against a known
+"""How much of the residual follows the joint angles (``solvers.model.skin.skin_motion``): against a known
 mixture of pose-independent noise and skin displacement made from the joint angle, and on generated takes
 whose skin motion is known to be independent of the pose or driven by the joint angles."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocapskel import evaluate, pipeline
-from mocapskel.solvers.model.skin import angle_share, skin_motion
+from mocapskel.solvers.model.skin import skin_motion
 from mocapskel.solvers.rotations import rotvec_to_matrix
 
 
@@ -44,7 +44,7 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
     F = pts.shape[0]
     sigma = 1.0
     noisy = pts + rng.normal(0.0, sigma, pts.shape)
-    assert abs(angle_share(parent, seg, origin, local, noisy, rot, root)) < 0.03
+    assert abs(skin_motion(parent, seg, origin, local, noisy, rot, root).share) < 0.03
 
     k = knee - knee.mean(0)
     feats = np.concatenate([k, k[:, [0, 1, 2, 0, 0, 1]] * k[:, [0, 1, 2, 1, 2, 2]]], axis=1)
@@ -55,7 +55,7 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
         moved = noisy.copy()
         moved[:, 3:] += np.einsum("fij,fmj->fmi", rot[:, 1], skin)  # the shank's axes to the lab's
         expected = 3 * s_mm**2 / (6 * sigma**2 + 3 * s_mm**2)
-        got = angle_share(parent, seg, origin, local, moved, rot, root)
+        got = skin_motion(parent, seg, origin, local, moved, rot, root).share
         assert abs(got - expected) < 0.04, (got, expected)
         # per segment: the shank's markers' explained variance per coordinate is the skin's, the thigh's none;
         # the knee's angular variance is its turn's
@@ -66,7 +66,7 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
     # unseen markers are left out of their frames, not taken as zeros
     holed = noisy.copy()
     holed[rng.random(holed.shape[:2]) < 0.1] = np.nan
-    assert abs(angle_share(parent, seg, origin, local, holed, rot, root)) < 0.03
+    assert abs(skin_motion(parent, seg, origin, local, holed, rot, root).share) < 0.03
     assert F == 600
 
 

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import NAME_PATTERN, Skeleton
+from ..artifacts import Skeleton, name_problem
 from ..errors import InputError
 from .atomic import atomic_open
 
@@ -135,10 +135,8 @@ def read_skeleton(path: str | os.PathLike) -> Skeleton:
             raise ValueError("segment names and marker labels must be non-empty text")
         if len(set(names)) != len(names):
             raise ValueError("repeated segment names")
-        bad = [n for n in names if not NAME_PATTERN.match(n) or any(o != n and o.startswith(n) for o in names)]
-        if bad:  # 'fit' writes BVH joint names; 'solve' writes them as they are
-            raise ValueError(f"segment name {bad[0][:40]!r} is no BVH joint name (letters, digits and _, not starting "
-                             "with a digit, none the start of another)")
+        if problem := name_problem(names):  # 'fit' writes BVH joint names; 'solve' writes them as they are
+            raise ValueError(f"segment names: {problem}")
         if len(set(labels)) != len(labels):
             raise ValueError("repeated marker labels")
         index = {n: i for i, n in enumerate(names)}

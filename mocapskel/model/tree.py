@@ -9,8 +9,6 @@ import numpy as np
 from ..artifacts import NAME_PATTERN, check_names  # noqa: F401 (the names' rule lives with the artifacts that hold them)
 
 
-
-
 def depth_first_order(parent: np.ndarray) -> np.ndarray:
     """The order in which a BVH file lists the joints of a tree.
 

@@ -11,7 +11,7 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
 - :mod:`mocapskel.solvers.model.uncertainty`: each joint's uncertainty, the Laplace approximation
   at a fitted skeleton (``skeleton_uncertainty``);
 - :mod:`mocapskel.solvers.model.skin`: how much of the residual follows the joint angles
-  (``angle_share``), the part of the skin's motion the model's noise does not describe;
+  (``skin_motion``), the part of the skin's motion the model's noise does not describe;
 - :mod:`mocapskel.solvers.model.refinement`: the refinement of the default ``joint_model="rules"``
   path (``refine``): the bundle adjustment free, then held where the tests of
   :mod:`mocapskel.solvers.rules.plausible` say a joint is off the body; it also picks the frames

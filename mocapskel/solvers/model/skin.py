@@ -118,9 +118,3 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             explained += seg_ex
     return SkinMotion(share=explained / total if total > 0 else float("nan"), explained=per_seg, angle_var=angle_var)
 
-
-def angle_share(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
-                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray) -> float:
-    """:func:`skin_motion`'s share alone: 0 where the residual does not follow the joint angles, NaN where
-    nothing can be measured."""
-    return skin_motion(parent, marker_segment, origin, marker_local, observed, rot, root_pos).share
