@@ -14,28 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def _recycle_large_blocks() -> None:
-    """Let the C allocator recycle the kernels' large temporaries (once per process).
-
-    numpy takes every array from malloc. glibc serves blocks above its mmap
-    threshold (128 KiB at first) straight from the system, every page a fault
-    on first touch, and hands back free memory at the top of its heap beyond
-    twice that threshold; the kernels' arrays (a few MiB, many per
-    iteration) would pay that each time, doubling their cost. Freeing one
-    mmap-served 32 MiB block raises both thresholds (to that size, glibc's
-    ceiling), after which such arrays are recycled. The block is never written:
-    its pages are never faulted in (writing them cost 5-60 ms). Elsewhere it
-    costs one allocation.
-    """
-    global _RECYCLING
-    if not _RECYCLING:
-        _RECYCLING = True
-        np.empty(1 << 22)  # 32 MiB, freed at once, untouched
-
-
-_RECYCLING = False
-
-
 # --------------------------------------------------------------------------- component planes
 
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...allocator import keep_large_blocks
 from ..parallel import run_blocks
-from .planes import _c_dot, _c_mv, _c_quat_to_mat, _recycle_large_blocks
+from .planes import _c_dot, _c_mv, _c_quat_to_mat
 from ..rigid import _adj4, kabsch
 
 __all__ = ["segment_poses"]
@@ -95,7 +96,7 @@ def segment_poses(
         bits[b, cols] = 2.0 ** np.arange(len(cols))
         luts.append((a, len(cols)))
     Aw2 = Aw.reshape(3 * B, Q)
-    _recycle_large_blocks()
+    keep_large_blocks()
     luts_ok: dict[int, np.ndarray] = {}  # per shape, whether each visibility pattern can be solved
 
     R = np.empty((F, B, 3, 3))

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...allocator import keep_large_blocks
 from ..parallel import run_blocks
 from .problem import _Model, _Tree
 from .planes import (
@@ -44,7 +45,6 @@ from .planes import (
     _c_mv,
     _planes,
     _project_so3,
-    _recycle_large_blocks,
     _unplanes,
 )
 from .start import _initial_rotations, _interp_fill, _root_from_rotations
@@ -256,7 +256,7 @@ def solve_ik(
         if init_rot.shape != (F, S, 3, 3) or not np.isfinite(init_rot).all():
             raise ValueError(f"init_rot must be finite, ({F}, {S}, 3, 3)")
     start, start_perm = (R_prior, prior_perm) if init_rot is None else (init_rot, tree.perm)
-    _recycle_large_blocks()
+    keep_large_blocks()
     blocks = [(lo, min(lo + _BLOCK, F)) for lo in range(0, F, _BLOCK)]
     if init_root is None:
         p0 = np.empty((F, 3))
