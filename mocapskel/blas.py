@@ -1,5 +1,5 @@
 """The pipeline's entry points: the BLAS libraries on one thread each while they run (the workers are the
-package's own), and the C allocator set to keep a long take's large arrays (:mod:`mocapskel.allocator`)."""
+package's own), and the C allocator set to keep a long take's large arrays (:mod:`mocapskel.solvers.allocator`)."""
 from __future__ import annotations
 
 from typing import Callable, TypeVar
@@ -13,11 +13,11 @@ def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
     ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` or ``MKL_NUM_THREADS``. With BLAS threads of their
     own, the forked workers and threads of :mod:`mocapskel.solvers.parallel` (``run_forked``, ``Shares``, ``run_blocks``)
     spin against each other: a fit took twice as long. The allocator is set on the first call
-    (:func:`~mocapskel.allocator.keep_large_blocks`)."""
+    (:func:`~mocapskel.solvers.allocator.keep_large_blocks`)."""
     import functools
 
     import mocapskel
-    from .allocator import keep_large_blocks
+    from .solvers.allocator import keep_large_blocks
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):

@@ -1,4 +1,4 @@
-"""The C allocator keeps a long take's large arrays (mocapskel.allocator): on glibc a large array comes from
+"""The C allocator keeps a long take's large arrays (mocapskel.solvers.allocator): on glibc a large array comes from
 the heap, not a mapping of its own, and its memory stays in the heap for the next array when it is freed."""
 import ctypes
 import os
@@ -11,7 +11,7 @@ _PROBE = r"""
 import ctypes, sys
 import numpy as np
 if sys.argv[1] == "1":
-    from mocapskel.allocator import keep_large_blocks
+    from mocapskel.solvers.allocator import keep_large_blocks
     keep_large_blocks()
 class Info(ctypes.Structure):
     _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",

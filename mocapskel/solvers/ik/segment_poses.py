@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...allocator import keep_large_blocks
+from ..allocator import keep_large_blocks
 from ..parallel import run_blocks
 from .planes import _c_dot, _c_mv, _c_quat_to_mat
 from ..rigid import _adj4, kabsch

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...allocator import keep_large_blocks
+from ..allocator import keep_large_blocks
 from ..parallel import run_blocks
 from .problem import _Model, _Tree
 from .planes import (

@@ -38,6 +38,17 @@ child's: a turn two markers do not define is the segment's own at the rest frame
 the segment's turn at the rest frame, and the origin at the marker. Directions are in the lab's axes at the
 rest frame.
 
+The residuals' own spread: the model's covariance takes the noise as independent and the model as
+right. Where the residuals say otherwise (a marker sliding over its segment, a joint whose centre moves,
+skin that follows the pose), the scores of the constant unknowns, per frame with that frame's pose
+eliminated, spread more than the model's curvature says. Their spread over stretches of frames as long as
+one independent observation (:func:`frames_per_independent`) gives the sandwich covariance ``B0^-1 (S + P)
+B0^-1`` (Huber 1967; White 1982), ``B0`` the posterior precision with the frames as independent, ``P`` the
+prior's; where it exceeds the model's own ``B0^-1`` the excess is added to each joint's covariance (where the
+model holds it is about zero). Scores taken where a rule moved a joint off where the markers put it sum
+to more than their spread: that also widens its region. Like the skin's part below, it is no part of the
+model's information: the prior's share, and whether the prior sets a joint, come from the model alone.
+
 The prior: an isotropic Gaussian on that position, centred where the fit put it, of standard
 deviation ``prior_scale`` times the child segment's size (the largest distance between two of its
 markers and joints at rest). It is stated in millimetres, the data's precision in units of the
@@ -99,7 +110,10 @@ class JointUncertainty:
 
     kids : (K,) child segment of each joint.
     cov : (K, 3, 3) posterior covariance (mm^2) of the joint relative to the markers of ``frame``, lab axes at rest.
-    sd : (K, 3) standard deviations (mm) along the principal directions, largest first.
+    spread : (K, 3, 3) what the residuals' own spread adds to it (the sandwich's excess, see the module
+        docstring; positive semi-definite, not in ``cov``, ``sd`` or ``prior_share``: no part of the model's
+        information, so no part of what the prior sets).
+    sd : (K, 3) standard deviations (mm) along the principal directions of ``cov``, largest first.
     directions : (K, 3, 3) the principal directions (rows, unit), in the order of ``sd``.
     prior_share : (K, 3) the prior's share of the posterior precision along each direction.
     prior_sd : (K,) the prior's standard deviation (mm).
@@ -114,6 +128,7 @@ class JointUncertainty:
 
     kids: np.ndarray
     cov: np.ndarray
+    spread: np.ndarray
     sd: np.ndarray
     directions: np.ndarray
     prior_share: np.ndarray
@@ -366,6 +381,38 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
     return out / max(pairs, 1), sq / max(pairs, 1)
 
 
+def _sandwich(pr: _Problem, p, R, d, l, factors: list[tuple], B0: np.ndarray, P: np.ndarray, A: np.ndarray,
+              fix_g: np.ndarray, s2: float, frames_per_independent: float) -> np.ndarray:
+    """(K, 3, 3) the positive part of each joint's covariance by the sandwich ``B0^-1 (S + P) B0^-1`` less the
+    model's own ``B0^-1`` (``B0`` the posterior precision with the frames counted as independent, ``P`` the prior's):
+    ``S`` the scores' spread the residuals show, the sum over stretches of ``frames_per_independent``
+    consecutive frames of ``s s^T``, ``s`` the stretch's summed score of the constant unknowns with every
+    pose eliminated, ``G^T (I - Jf D^-1 Jf^T) r / sigma^2`` per frame. Where the model holds, ``S`` is about
+    the data's precision ``H0 / sigma^2`` and the difference about zero. Computed along the joints'
+    directions only: the scores times ``B0^-1 A^T``."""
+    K = A.shape[0] // 3
+    Z = np.linalg.solve(B0, A.T)  # (ng, 3K)
+    Zs = Z.copy()
+    Zs[fix_g] = 0.0  # the gauge's unknowns have no score
+
+    def one(j: int) -> np.ndarray:
+        sl, JfT, Li, w = factors[j]
+        r = pr.jacobian(sl, p, R, d, l)[3]  # (n, U, 3): rows of JfT are coordinate, then marker
+        rr = r.transpose(0, 2, 1).reshape(r.shape[0], -1, 1)
+        Gz = _g_columns(pr, R[sl], w, Zs)  # (n, 3U, 3K)
+        Y = Li @ (JfT @ Gz)
+        y = Li @ (JfT @ rr)
+        return (Gz.transpose(0, 2, 1) @ rr - Y.transpose(0, 2, 1) @ y)[..., 0]  # (n, 3K)
+
+    sc = np.concatenate(run_blocks(one, range(len(factors)))) / s2
+    block = max(1, int(round(frames_per_independent)))
+    sb = np.add.reduceat(sc, np.arange(0, sc.shape[0], block), axis=0)
+    full = sb.T @ sb + Z.T @ P @ Z - A @ Z  # (3K, 3K)
+    out = full.reshape(K, 3, K, 3)[np.arange(K), :, np.arange(K), :]
+    ev, vec = np.linalg.eigh(0.5 * (out + out.transpose(0, 2, 1)))
+    return np.einsum("kij,kj,klj->kil", vec, np.maximum(ev, 0.0), vec)  # its positive semi-definite part
+
+
 def _dof(pr: _Problem) -> tuple[int, int]:
     """(observed coordinates, their degrees of freedom): the coordinates less the unknowns the fit
     had, a segment's rotation in a frame counted where a marker on it or below it is seen, less
@@ -474,11 +521,16 @@ def joint_uncertainty(
     C = (A @ Z).reshape(K, 3, K, 3)
     cov = C[np.arange(K), :, np.arange(K), :]  # (K, 3, 3)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+    # what the residuals themselves show beyond the model's noise (the sandwich; see the module docstring)
+    B0 = H0 / s2 + P
+    B0[fix_g, fix_g] = scale
+    B0 += 1e-12 * scale * np.eye(pr.ng)
+    spread = _sandwich(pr, p, R, d, l, factors, B0, P, A, fix_g, s2, frames_per_independent)
     sd, directions = _principal(cov)
     share = np.clip(sd**2 / prior_sd[:, None] ** 2, 0.0, 1.0)
     turned, lacks = _axes(pr, R, l, kids, directions[:, 0])
     return JointUncertainty(
-        kids=kids, cov=cov, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
+        kids=kids, cov=cov, spread=spread, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
         frame=frame, frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
         noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]),
     )
@@ -536,7 +588,8 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     ``joints``: {child segment name: {sd_mm, directions, skin_sd_mm, prior_share, prior_sd_mm, set_by_prior,
     frame, frame_markers, turned_about, lacks_rotation_about}} (directions and axes in the lab's axes at the
     rest frame; ``lacks_rotation_about`` None unless set by the prior). ``sd_mm`` and ``directions`` are the
-    principal axes of the model's posterior covariance plus ``skin_sd_mm``^2 I, how far skin that slides with
+    principal axes of the model's posterior covariance plus the residuals' own spread (the sandwich's
+    excess, see the module docstring) plus ``skin_sd_mm``^2 I, how far skin that slides with
     the joint's angle can have moved it unseen (:meth:`~mocapskel.solvers.model.skin.SkinMotion.joint_sd`);
     ``prior_share`` is the prior's share of the model's precision along each of them.
     """
@@ -561,8 +614,9 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
     # (a reach's still leg) shows too little of its skin's curve to say more
     skin_sd = np.zeros(len(skel.parent))
     skin_sd[u.kids] = np.minimum(skin.joint_sd(skel.parent)[u.kids], u.sd[:, 0])
-    sd, directions = _principal(u.cov + (skin_sd[u.kids] ** 2)[:, None, None] * np.eye(3))
-    # the prior's share along those directions, of the model's own precision (the skin's part is no prior's)
+    sd, directions = _principal(u.cov + u.spread + (skin_sd[u.kids] ** 2)[:, None, None] * np.eye(3))
+    # the prior's share along those directions, of the model's own precision (the skin's part and the
+    # residuals' spread are no prior's)
     lam = np.einsum("kai,kij,kaj->ka", directions, np.linalg.pinv(u.cov), directions)
     prior_share = np.clip((1.0 / u.prior_sd[:, None] ** 2) / np.maximum(lam, 1e-300), 0.0, 1.0)
     joints = {}
