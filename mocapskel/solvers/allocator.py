@@ -5,8 +5,8 @@ threshold (128 KiB at first, raised on its own up to 32 MiB) straight from the
 system, every page a fault on first touch, and hands back free memory at the top
 of its heap beyond twice that threshold. A long take's arrays (a minute at 120 Hz
 with 48 markers: 60,000 frames times 15 joints' matrices, 65 MiB) are made and
-dropped many times over; mapped anew each time, their page faults took a third of
-the fit's system time (1.2 of 4.3 s on the 60,000-frame take, see BENCHMARKS.md).
+dropped many times over; mapped anew each time, they made a quarter to half of the
+60,000-frame take's page faults and about 0.3 s of its system time (BENCHMARKS.md).
 
 :func:`keep_large_blocks` sets both thresholds to :data:`LARGE` (``mallopt``),
 once per process, so that such blocks come from the heap and go back to it; the
