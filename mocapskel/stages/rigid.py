@@ -91,7 +91,7 @@ class Params:
     moves_by_evidence: bool = False
     """The depth and leaf-centre moves (``joint_depth``, ``leaf_centre``) taken as priors on the joint along
     its axis, not as places to move it to: the joint goes the prior's share of the way (its share of the
-    model's posterior precision along the axis at the refined skeleton,
+    reported precision along the axis at the refined skeleton, the skin's part and the residuals' spread in it,
     :func:`~mocapskel.solvers.model.uncertainty.prior_share_along`): all of it where the data say nothing there,
     none where they fix the joint. The leaf-centre rule's own tests of the data (``LEAF_PLANAR``, the
     residual) are then not asked."""

@@ -654,8 +654,8 @@ def _eigh_generalized(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 def prior_share_along(joint: dict, u: np.ndarray) -> float:
     """The prior's share of a joint's posterior precision along the unit direction ``u`` (lab axes at
-    rest): ``prior precision / (u^T Lambda u)``, Lambda the posterior precision rebuilt from
-    :func:`skeleton_uncertainty`'s entry ``joint`` (its ``sd_mm``, ``directions``, ``prior_sd_mm``).
+    rest): ``prior precision / (u^T Lambda u)``, Lambda the precision rebuilt from :func:`skeleton_uncertainty`'s
+    entry ``joint`` (its ``sd_mm``, ``directions``, ``prior_sd_mm``; the skin's part and the residuals' spread in it).
     1 where the data say nothing along ``u``, near 0 where they fix the joint there."""
     sd = np.asarray(joint["sd_mm"], dtype=float)
     D = np.asarray(joint["directions"], dtype=float)
