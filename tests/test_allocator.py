@@ -55,3 +55,27 @@ def test_large_array_from_the_heap_and_kept_there():
 def test_user_malloc_settings_are_kept():
     mapped, free = _probe(True, MALLOC_TRIM_THRESHOLD_="131072")
     assert mapped >= 48 and free < 48, (mapped, free)
+
+
+_AFTER_A_FIT = r"""
+import ctypes, sys
+import numpy as np
+from mocapskel import pipeline
+from mocapskel.synth.chains import hang_chain
+take = hang_chain((3, 3, 3), 200, rng=np.random.default_rng(0), link_length=300.0, noise=0.5)
+pipeline.run_until(take.markers, "clean")  # any entry point of the pipeline sets the allocator
+class Info(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                 "fsmblks", "uordblks", "fordblks", "keepcost")]
+info = ctypes.CDLL(None).mallinfo2
+info.restype = Info
+before = info().hblkhd
+x = np.ones(6 << 20)
+print((info().hblkhd - before) >> 20)
+"""
+
+
+def test_the_pipelines_entry_points_set_it():
+    env = {k: v for k, v in os.environ.items() if k not in _USER_VARS}
+    out = subprocess.run([sys.executable, "-c", _AFTER_A_FIT], env=env, capture_output=True, text=True, check=True)
+    assert int(out.stdout.strip().splitlines()[-1]) < 48, out.stdout  # the 48 MiB array came from the heap
