@@ -122,7 +122,7 @@ def test_sandwich_matches_the_dense_per_frame_scores():
     full = (sb.T @ sb + Z.T @ P @ Z - A @ Z).reshape(K, 3, K, 3)
     want = full[np.arange(K), :, np.arange(K), :]
     factors = unc_mod._pose_factors(pr, p, R, d, l, ref)
-    ours = unc_mod._sandwich(pr, p, R, d, l, factors, B0, P, A, fix_g, s2, 2.0)
+    ours = unc_mod._sandwich(pr, R, factors, B0, P, A, fix_g, s2, 2.0)
     # a difference of terms some 50 times larger: to their rounding and the differences' (and the pose
     # factors' damping)
     scale = np.abs(sb.T @ sb).max()

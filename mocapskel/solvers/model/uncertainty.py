@@ -331,13 +331,13 @@ def _g_columns(pr: _Problem, R: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.
 def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) -> list[tuple]:
     """Per chunk of frames: (its slice, the pose Jacobian transposed JfT (n, nf, 3U) with the reference
     frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T``, the
-    markers' weights (n, U))."""
+    markers' weights (n, U), the residual (n, 3U, 1) in JfT's row order: coordinate, then marker)."""
     def one(sl: slice) -> tuple:
-        JfT = pr.jacobian(sl, p, R, d, l)[0]  # its rows zero where a marker is unseen
+        JfT, _, _, r = pr.jacobian(sl, p, R, d, l)  # its rows zero where a marker is unseen
         if sl.start <= ref_frame < sl.stop:
             JfT[ref_frame - sl.start, 3:] = 0.0
         Li = np.linalg.inv(np.linalg.cholesky(_damped(JfT @ JfT.transpose(0, 2, 1))))
-        return sl, JfT, Li, pr.w[sl][:, pr.used]
+        return sl, JfT, Li, pr.w[sl][:, pr.used], r.transpose(0, 2, 1).reshape(r.shape[0], -1, 1)
 
     return run_blocks(one, _chunks(p.shape[0], chunk))
 
@@ -357,7 +357,7 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
     k = V.shape[1]
 
     def one(j: int) -> tuple[np.ndarray, np.ndarray]:
-        sl, JfT, Li, w = factors[j]
+        sl, JfT, Li, w, _ = factors[j]
         n = sl.stop - sl.start
         rng = np.random.default_rng((*seed, j))
         out, sq = np.zeros((k, k)), np.zeros(k)
@@ -381,7 +381,7 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
     return out / max(pairs, 1), sq / max(pairs, 1)
 
 
-def _sandwich(pr: _Problem, p, R, d, l, factors: list[tuple], B0: np.ndarray, P: np.ndarray, A: np.ndarray,
+def _sandwich(pr: _Problem, R: np.ndarray, factors: list[tuple], B0: np.ndarray, P: np.ndarray, A: np.ndarray,
               fix_g: np.ndarray, s2: float, frames_per_independent: float) -> np.ndarray:
     """(K, 3, 3) the positive part of each joint's covariance by the sandwich ``B0^-1 (S + P) B0^-1`` less the
     model's own ``B0^-1`` (``B0`` the posterior precision with the frames counted as independent, ``P`` the prior's):
@@ -396,9 +396,7 @@ def _sandwich(pr: _Problem, p, R, d, l, factors: list[tuple], B0: np.ndarray, P:
     Zs[fix_g] = 0.0  # the gauge's unknowns have no score
 
     def one(j: int) -> np.ndarray:
-        sl, JfT, Li, w = factors[j]
-        r = pr.jacobian(sl, p, R, d, l)[3]  # (n, U, 3): rows of JfT are coordinate, then marker
-        rr = r.transpose(0, 2, 1).reshape(r.shape[0], -1, 1)
+        sl, JfT, Li, w, rr = factors[j]
         Gz = _g_columns(pr, R[sl], w, Zs)  # (n, 3U, 3K)
         Y = Li @ (JfT @ Gz)
         y = Li @ (JfT @ rr)
@@ -525,7 +523,7 @@ def joint_uncertainty(
     B0 = H0 / s2 + P
     B0[fix_g, fix_g] = scale
     B0 += 1e-12 * scale * np.eye(pr.ng)
-    spread = _sandwich(pr, p, R, d, l, factors, B0, P, A, fix_g, s2, frames_per_independent)
+    spread = _sandwich(pr, R, factors, B0, P, A, fix_g, s2, frames_per_independent)
     sd, directions = _principal(cov)
     share = np.clip(sd**2 / prior_sd[:, None] ** 2, 0.0, 1.0)
     turned, lacks = _axes(pr, R, l, kids, directions[:, 0])
