@@ -41,7 +41,6 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
     in all as the noise, gives the share it makes of the residual's variance: 3 s^2 / (6 sigma^2 + 3 s^2)."""
     rng = np.random.default_rng(3)
     parent, seg, origin, local, rot, root, pts, knee = _two_segments(rng)
-    F = pts.shape[0]
     sigma = 1.0
     noisy = pts + rng.normal(0.0, sigma, pts.shape)
     assert abs(skin_motion(parent, seg, origin, local, noisy, rot, root).share) < 0.03
@@ -55,11 +54,10 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
         moved = noisy.copy()
         moved[:, 3:] += np.einsum("fij,fmj->fmi", rot[:, 1], skin)  # the shank's axes to the lab's
         expected = 3 * s_mm**2 / (6 * sigma**2 + 3 * s_mm**2)
-        got = skin_motion(parent, seg, origin, local, moved, rot, root).share
-        assert abs(got - expected) < 0.04, (got, expected)
+        sm = skin_motion(parent, seg, origin, local, moved, rot, root)
+        assert abs(sm.share - expected) < 0.04, (sm.share, expected)
         # per segment: the shank's markers' explained variance per coordinate is the skin's, the thigh's none;
         # the knee's angular variance is its turn's
-        sm = skin_motion(parent, seg, origin, local, moved, rot, root)
         assert abs(sm.explained[1] - s_mm**2) < 0.1 * s_mm**2, (sm.explained, s_mm**2)
         assert sm.explained[0] < 0.05 * s_mm**2
         assert np.isclose(sm.angle_var[1], np.sum(knee.var(0)), rtol=1e-6)
@@ -67,7 +65,6 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
     holed = noisy.copy()
     holed[rng.random(holed.shape[:2]) < 0.1] = np.nan
     assert abs(skin_motion(parent, seg, origin, local, holed, rot, root).share) < 0.03
-    assert F == 600
 
 
 def test_the_report_tells_skin_that_follows_the_joints_from_skin_that_does_not():
