@@ -43,7 +43,13 @@ WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepene
            "map-like": ("frames", "deepened", 0.03),
            "map-hinge": ("frames", "deepened+leaf", 0.03, 0.01),
            "map-hinge-moved": ("frames", "deepened+leaf", 0.03, 0.01, False),
-           "map-hinge-03": ("frames", "deepened+leaf", 0.03, 0.03, False)}
+           "map-hinge-03": ("frames", "deepened+leaf", 0.03, 0.03, False),
+           "map-plane-05": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.05),
+           "map-plane-10": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.1),
+           "map-plane-20": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.2),
+           "map-skin-20": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.0, 20.0),
+           "map-skin-100": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.0, 100.0),
+           "map-skin-plane": ("frames", "deepened+leaf", 0.03, 0.01, False, 0.1, 100.0)}
 #: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
 ABLATIONS = {
     "rules": {},
@@ -69,7 +75,8 @@ def _rigid(mode: str, scale: float):
         return rigid.Params(joint_model="rules", **ABLATIONS[mode])
     w, mean, bone, *hinge = WEIGHTS[mode]
     return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone,
-                        hinge_scale=hinge[0] if hinge else 0.0, hinge_placed=hinge[1] if len(hinge) > 1 else True)
+                        hinge_scale=hinge[0] if hinge else 0.0, hinge_placed=hinge[1] if len(hinge) > 1 else True,
+                        plane_sigma=hinge[2] if len(hinge) > 2 else 0.0, skin_tau=hinge[3] if len(hinge) > 3 else 0.0)
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
