@@ -107,7 +107,7 @@ def _exp(rv: np.ndarray) -> np.ndarray:
 
 
 class _Problem:
-    def __init__(self, parent, seg, observed, extra=None):
+    def __init__(self, parent, seg, observed):
         S = len(parent)
         self.S = S
         self.parent = np.asarray(parent)
@@ -125,11 +125,7 @@ class _Problem:
         self.nf = 3 + 3 * S
         kids = [s for s in range(S) if self.parent[s] >= 0]
         self.gi = {c: 3 * i for i, c in enumerate(kids)}
-        # skin terms (see refine_skeleton's ``skin``): (joint, per-frame matrix M), their three unknowns
-        # after the bones', each a bone-like column whose per-frame matrix is its parent's rotation times M
-        self.extra = [(int(c), np.asarray(M, dtype=float)) for c, M in (extra or [])]
-        self.ge = [3 * (len(kids) + i) for i in range(len(self.extra))]
-        base = 3 * (len(kids) + len(self.extra))
+        base = 3 * len(kids)
         self.nd = base
         self.gl = {int(m): base + 3 * i for i, m in enumerate(self.used)}
         self.ng = base + 3 * len(self.used)
@@ -155,13 +151,10 @@ class _Problem:
         # sub[i, k]: joint k (of kids) is on used marker i's path; sub2[i, k, k']: both are
         self.sub = np.zeros((self.used.size, len(kids)))
         self.sub[self.di, self.dc] = 1.0
-        if self.extra:
-            self.sub = np.hstack([self.sub, self.sub[:, [self.gi[c] // 3 for c, _ in self.extra]]])
-        nb = self.sub.shape[1]
         self.sub2 = self.sub[:, :, None] * self.sub[:, None, :]
         self.sub_mask = np.repeat(np.repeat(self.sub.T, 3, axis=0), 3, axis=1)  # (nd, 3U)
-        j_, c_, k_ = np.meshgrid(np.arange(3), np.arange(nb), np.arange(3), indexing="ij")
-        self.bd_rows, self.bd_cols = (j_ * nb + c_).ravel(), (c_ * 3 + k_).ravel()
+        j_, c_, k_ = np.meshgrid(np.arange(3), np.arange(len(kids)), np.arange(3), indexing="ij")
+        self.bd_rows, self.bd_cols = (j_ * len(kids) + c_).ravel(), (c_ * 3 + k_).ravel()
         # flat positions (within one frame's block) of the (marker, path segment) 3x3 blocks: in the
         # transposed pose Jacobian (S + 1, 3, 3, U) and in X's marker columns (rows (S + 1) * 3, columns
         # ng + 1): one take along a flat axis instead of a scatter through two index arrays (the same
@@ -249,18 +242,15 @@ class _Problem:
             out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
         return out
 
-    def fk(self, p, R, d, l, sl=slice(None)):
+    def fk(self, p, R, d, l):
         F = p.shape[0]
         P = np.empty((F, self.S, 3))
         G = np.zeros((F, self.S, 3))
-        off = np.broadcast_to(d[: self.S], (F, self.S, 3)).copy() if self.extra else None
-        for e, (c, M) in enumerate(self.extra):  # a skin term's part of its joint's offset, frame by frame
-            off[:, c] += M[sl] @ d[self.S + e]
         for s in self.order:
             if self.parent[s] < 0:
                 P[:, s] = p
             else:
-                G[:, s] = R[:, self.parent[s]] @ d[s] if off is None else (R[:, self.parent[s]] @ off[:, s, :, None])[..., 0]
+                G[:, s] = R[:, self.parent[s]] @ d[s]
                 P[:, s] = P[:, self.parent[s]] + G[:, s]
         t = self.seg[self.used]
         x = P[:, t] + np.einsum("fmij,mj->fmi", R[:, t], l[self.used])
@@ -287,7 +277,7 @@ class _Problem:
         ``R_parent(c) w`` wherever ``c`` is on ``m``'s path (see :meth:`normal_equations`).
         """
         p, R = p[sl], R[sl]
-        P, G, x = self.fk(p, R, d, l, sl)
+        P, G, x = self.fk(p, R, d, l)
         n = p.shape[0]
         U = self.used.size
         S, nf = self.S, self.nf
@@ -321,8 +311,6 @@ class _Problem:
         S, nf, nd, ng, nk = self.S, self.nf, self.nd, self.ng, self.nd // 3
         w = self.w[sl][:, self.used]
         Rp = R[sl][:, self.kid_parent]  # (n, nk, 3, 3) each joint's parent rotation
-        if self.extra:  # a skin term's: its joint's parent rotation times its per-frame matrix
-            Rp = np.concatenate([Rp] + [R[sl][:, self.parent[c], None] @ M[sl][:, None] for c, M in self.extra], axis=1)
         Hff = JfT @ JfT.transpose(0, 2, 1)
         X = np.empty((n, nf, ng + 1))
         # bone columns: the Jf rows of a joint's subtree summed, times the parent's rotation
@@ -379,7 +367,6 @@ def refine_skeleton(
     like_bones: list[tuple[int, int, float]] | None = None,
     hold_weights: dict[int, tuple[float, float]] | None = None,
     zero_along: list[tuple[int, np.ndarray, float]] | None = None,
-    skin: dict[int, float] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -419,22 +406,14 @@ def refine_skeleton(
         noise sigma_n weighs sigma_n^2 / sigma^2), instead of ``hold_weight`` per frame for all.
     zero_along : (c, a, weight): child segment c's offset from its parent's origin held across the unit vector
         ``a`` (rest-pose axes): ``weight`` (whole fit) x (a . d_c)^2.
-    skin : {child segment c: weight}: c's joint carries a skin term, a displacement of everything below it,
-        in its parent's frame, of M_f k_c with M_f = -Rbar [phi_f]x (Rbar the mean of the joint's relative
-        rotations in ``rot``, phi_f each frame's rotation vector from it, centred): what moving the joint by
-        k_c does to first order in its turn about Rbar. Skin that slides with the joint's angle is such a
-        displacement, and with it in the model the joint is placed by the motion's curvature alone where
-        its turns are small; k_c ~ N(0, I / weight) (whole fit, as ``prior_weights``). Not in the result.
     """
     parent = np.asarray(parent)
     S = len(parent)
     F = observed.shape[0]
-    skin_c = [int(c) for c in sorted(skin or {}) if parent[int(c)] >= 0 and skin[c] > 0]
-    pr = _Problem(parent, np.asarray(marker_segment), observed,
-                  [(c, _skin_matrices(np.asarray(rot, dtype=float), int(parent[c]), c)) for c in skin_c])
+    pr = _Problem(parent, np.asarray(marker_segment), observed)
     p = np.array(root_pos, dtype=float)
     R = np.array(rot, dtype=float)
-    d = np.zeros((S + len(skin_c), 3))
+    d = np.zeros((S, 3))
     for c in pr.kids:
         d[c] = origin[c] - origin[parent[c]]
     l = np.array(marker_local, dtype=float)
@@ -464,7 +443,7 @@ def refine_skeleton(
         g0 = _pack(pr, d, l)
     else:
         a_origin, a_local = (np.asarray(x, dtype=float) for x in anchor)
-        d_a = np.zeros_like(d)
+        d_a = np.zeros((S, 3))
         for c in pr.kids:
             d_a[c] = a_origin[c] - a_origin[parent[c]]
         g0 = _pack(pr, d_a, a_local)
@@ -485,11 +464,6 @@ def refine_skeleton(
         if parent[c] >= 0 and w > 0:
             row = np.zeros(ng)
             row[pr.gi[c] : pr.gi[c] + 3] = np.sqrt(w) * np.asarray(a, dtype=float)
-            trows.append(row)
-    for e, c in enumerate(skin_c):  # the skin terms' prior: rows sqrt(w) k_c, held to 0
-        for k in range(3):
-            row = np.zeros(ng)
-            row[pr.ge[e] + k] = np.sqrt(skin[c])
             trows.append(row)
     T = np.array(trows).reshape(-1, ng)
 
@@ -598,8 +572,6 @@ def refine_skeleton(
                     d1 = d.copy()
                     for c in pr.kids:
                         d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
-                    for e, ge in enumerate(pr.ge):
-                        d1[S + e] += dg[ge : ge + 3]
                     l1 = l.copy()
                     for m in pr.used:
                         l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
@@ -665,27 +637,11 @@ def refine_skeleton(
     )
 
 
-def _skin_matrices(rot: np.ndarray, p: int, c: int) -> np.ndarray:
-    """(F, 3, 3) M_f = -Rbar [phi_f]x for the joint of child ``c`` on parent ``p`` (see :func:`refine_skeleton`'s
-    ``skin``): Rbar the chordal mean of the relative rotations R_p^T R_c of ``rot`` (F, S, 3, 3), phi_f their
-    rotation vectors from it, less their mean."""
-    from scipy.spatial.transform import Rotation
-
-    rel = np.swapaxes(rot[:, p], -1, -2) @ rot[:, c]
-    u, _, vt = np.linalg.svd(rel.sum(0))
-    bar = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    phi = Rotation.from_matrix(bar.T[None] @ rel).as_rotvec()
-    phi -= phi.mean(0)
-    return -bar[None] @ _hat(phi)
-
-
 def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     """The constant unknowns (bone offsets, then used markers' offsets) as one vector."""
     g = np.zeros(pr.ng)
     for c in pr.kids:
         g[pr.gi[c] : pr.gi[c] + 3] = d[c]
-    for e, ge in enumerate(pr.ge):
-        g[ge : ge + 3] = d[pr.S + e]
     for m in pr.used:
         g[pr.gl[int(m)] : pr.gl[int(m)] + 3] = l[m]
     return g

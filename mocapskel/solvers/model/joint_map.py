@@ -17,6 +17,7 @@ marker sitting outside the bone, as the prior's mean). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
         [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2] [+ sum_hinges,s (a_c . (joint_cs - mean_cs))^2 / sigma_hs^2]
+        [+ sum_hinges,bones (a_c . bone)^2 / (sigma_p |bone|)^2]
 
 over the refinement's n frames (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` with
 ``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
@@ -39,6 +40,10 @@ Hinges whose place along their axis the mean knows (optional, ``hinge_scale`` > 
 the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``): a second Gaussian
 along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
 the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
+
+Bones across their hinges (optional, ``plane_sigma`` = sigma_p > 0, radians): a limb's long bones (joint to
+joint) are within a few degrees of square to the axis of a hinge at either end (:func:`bone_planes`), so a knee
+with no marker over its axis sits, along it, in line with the hip and the ankle.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
@@ -235,7 +240,7 @@ def bone_planes(start: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: 
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
-               plane_sigma: float = 0.0, skin_tau: float = 0.0) -> Skeleton:
+               plane_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -283,9 +288,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          hold_along=hold, hold_weights=hold_w, zero_along=planes,
-                          skin={c: inflate * sn**2 / skin_tau**2 for c in range(len(start.names)) if start.parent[c] >= 0}
-                          if skin_tau > 0 else None)
+                          hold_along=hold, hold_weights=hold_w, zero_along=planes)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for _, _, x in planes)) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
