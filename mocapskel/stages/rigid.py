@@ -148,11 +148,6 @@ class Params:
     legs held where the joints stage put them: found grouping, seed 6, 25.6 -> 41.5 mm), though on
     opensim_test_walking it matched 6 of 6 joints at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS,
     "A prior along a hinge's axis")."""
-    plane_sigma: float = 0.05
-    """With ``joint_model="map"``: a limb's bones lie across its hinges' axes, within this angle (radians) of
-    square (:func:`~mocapskel.solvers.model.joint_map.bone_planes`: a knee's flexion axis is within a few degrees
-    of square to the femur's and the tibia's mechanical axes); 0: no such prior. 0.05 measured better than 0.1 and
-    0.2 on the tuning seeds and gained on the checking seeds too (BENCHMARKS, "Bones across their hinges' axes")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -363,8 +358,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                         plane_sigma=params.plane_sigma)
+                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

@@ -366,7 +366,6 @@ def refine_skeleton(
     prior_weights: np.ndarray | None = None,
     like_bones: list[tuple[int, int, float]] | None = None,
     hold_weights: dict[int, tuple[float, float]] | None = None,
-    zero_along: list[tuple[int, np.ndarray, float]] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -404,8 +403,6 @@ def refine_skeleton(
     hold_weights : {child segment: (weight relative to its parent's markers, to its own)} for the joints of
         ``hold_along``: the hold's weight for the whole fit, joint by joint (a Gaussian of sigma against marker
         noise sigma_n weighs sigma_n^2 / sigma^2), instead of ``hold_weight`` per frame for all.
-    zero_along : (c, a, weight): child segment c's offset from its parent's origin held across the unit vector
-        ``a`` (rest-pose axes): ``weight`` (whole fit) x (a . d_c)^2.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -460,11 +457,6 @@ def refine_skeleton(
             if n > 0:
                 row[pr.gi[c] : pr.gi[c] + 3] = sign * d[c] / n
         trows.append(np.sqrt(w) * row)
-    for c, a, w in zero_along or ():  # rows sqrt(w) (a . d_c), held to 0
-        if parent[c] >= 0 and w > 0:
-            row = np.zeros(ng)
-            row[pr.gi[c] : pr.gi[c] + 3] = np.sqrt(w) * np.asarray(a, dtype=float)
-            trows.append(row)
     T = np.array(trows).reshape(-1, ng)
 
     def total(p_, R_, d_, l_) -> float:

@@ -17,7 +17,6 @@ marker sitting outside the bone, as the prior's mean). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
         [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2] [+ sum_hinges,s (a_c . (joint_cs - mean_cs))^2 / sigma_hs^2]
-        [+ sum_hinges,bones (a_c . bone)^2 / (sigma_p |bone|)^2]
 
 over the refinement's n frames (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton` with
 ``prior_weights`` = (n / n_eff) sigma_n^2 / sigma_cs^2). Each prior term is one factor for the whole
@@ -40,10 +39,6 @@ Hinges whose place along their axis the mean knows (optional, ``hinge_scale`` > 
 the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``): a second Gaussian
 along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
 the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
-
-Bones across their hinges (optional, ``plane_sigma`` = sigma_p > 0, radians): a limb's long bones (joint to
-joint) are within a few degrees of square to the axis of a hinge at either end (:func:`bone_planes`), so a knee
-with no marker over its axis sits, along it, in line with the hip and the ankle.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
@@ -205,42 +200,9 @@ def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.nd
     return hold, w
 
 
-def bone_planes(start: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: float, sigma: float,
-                unit: float) -> list[tuple[int, np.ndarray, float]]:
-    """(k, axis, weight): a limb's bones lie across its hinges' axes. For each joint c whose relative rotations
-    ``rot`` turn about one axis a (:func:`_hinge_direction`), the bone into it (c's offset from its parent's
-    origin, when that parent is a link of a limb: not the root, one child) and the bone out of it (the
-    offset of c's one child) have a . bone ~ N(0, (``sigma`` |bone|)^2): a knee's or elbow's flexion axis is
-    within a few degrees of square to the long bones it joins (sigma in radians), which fixes where along
-    that axis the joint sits from the joints at the bones' other ends. Weighed against ``unit``."""
-    seen = segments_seen(start.marker_segment, len(start.names), pts)
-    parent = np.asarray(start.parent)
-    kids = [np.flatnonzero(parent == s) for s in range(len(parent))]
-    out = []
-    for c in range(len(parent)):
-        p = int(parent[c])
-        if p < 0:
-            continue
-        rel = _relative_rotations(rot, p, c, seen)
-        if rel is None:
-            continue
-        line = _bone_line(start, c)
-        ax = _hinge_direction(rel, hinge_ratio, None if line is None else line[1])
-        if ax is None:
-            continue
-        bones = [c] if parent[p] >= 0 and kids[p].size == 1 else []
-        bones += [int(kids[c][0])] if kids[c].size == 1 else []
-        for k in bones:
-            length = float(np.linalg.norm(start.origin[k] - start.origin[parent[k]]))
-            if length > 0:
-                out.append((k, ax, unit / (sigma * length) ** 2))
-    return out
-
-
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
-               bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
-               plane_sigma: float = 0.0) -> Skeleton:
+               bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -282,16 +244,13 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             if hinge_placed and e < len(per) and per[e].get("hinge"):
                 placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
-    planes = []
-    if plane_sigma > 0:
-        planes = bone_planes(start, pose.rot, pts[use], hinge_ratio, plane_sigma, inflate * sn**2)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          hold_along=hold, hold_weights=hold_w, zero_along=planes)
+                          hold_along=hold, hold_weights=hold_w)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
-           + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for _, _, x in planes)) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
+           + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
