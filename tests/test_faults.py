@@ -138,6 +138,9 @@ def _wait_for(path: Path, text: str, proc: subprocess.Popen, timeout: float = 60
 @pytest.mark.parametrize("after", ["clean     done", "rigid     done", "ik        done"])
 def test_ctrl_c_leaves_no_output_and_a_sound_cache(tmp_path: Path, big: Path, after: str) -> None:
     """SIGINT during the early stages, during IK, and during export/writing."""
+    # a shell starts a background job with SIGINT ignored, and the command keeps an ignored signal ignored
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        pytest.skip("this test process ignores SIGINT, and so would the command it starts")
     cache, out = tmp_path / "cache", tmp_path / "out"
     out.mkdir()
     (out / "old.json").write_text("{}\n")  # an earlier run's report: must survive

@@ -537,6 +537,9 @@ def medium(tmp_path_factory) -> Path:
 def test_signal_at_several_moments_of_a_fit(tmp_path: Path, medium: Path, sig: int, moment: str) -> None:
     """From the command's first instruction on, SIGTERM ends in 143 and SIGINT in 130 with one line and no output
     (a SIGTERM 0.8 s into a fit once killed the process with the signal itself, -15)."""
+    # a shell starts a background job with SIGINT ignored, and the command keeps an ignored signal ignored
+    if signal.getsignal(sig) is signal.SIG_IGN:
+        pytest.skip(f"this test process ignores {signal.Signals(sig).name}, and so would the command it starts")
     out = tmp_path / "o.bvh"
     p = subprocess.Popen([sys.executable, "-m", "mocapskel", "fit", str(medium), "-o", str(out), "--no-cache"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=tmp_path)
