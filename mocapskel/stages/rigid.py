@@ -148,6 +148,12 @@ class Params:
     legs held where the joints stage put them: found grouping, seed 6, 25.6 -> 41.5 mm), though on
     opensim_test_walking it matched 6 of 6 joints at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS,
     "A prior along a hinge's axis")."""
+    soft_sigma: float = 0.0
+    """With ``joint_model="map"``: every joint is soft (``refine_skeleton``'s ``soft``): in each frame it may sit off
+    its fixed place in its parent's frame by a Gaussian offset of this standard deviation (mm per axis); 0: none.
+    15-30 mm bring the model path to the rules' joint counts on the real human references (at a higher rms) and lose
+    on the generated tuning half, whose joints are exact points (BENCHMARKS, "Soft joints"); off until the
+    generator's joints move as real ones do."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -358,7 +364,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed)
+                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
+                         soft_sigma=params.soft_sigma)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

@@ -107,7 +107,7 @@ def _exp(rv: np.ndarray) -> np.ndarray:
 
 
 class _Problem:
-    def __init__(self, parent, seg, observed):
+    def __init__(self, parent, seg, observed, soft=()):
         S = len(parent)
         self.S = S
         self.parent = np.asarray(parent)
@@ -122,7 +122,10 @@ class _Problem:
         self.seg = np.asarray(seg)
         self.y = np.where(vis[..., None], observed, 0.0)
         self.w = vis.astype(float)
-        self.nf = 3 + 3 * S
+        # soft joints: each frame's pose also has, for each of these child segments, the joint's offset
+        # from its fixed place in the parent's frame (3 unknowns after the rotations)
+        self.soft = [int(c) for c in soft]
+        self.nf = 3 + 3 * S + 3 * len(self.soft)
         kids = [s for s in range(S) if self.parent[s] >= 0]
         self.gi = {c: 3 * i for i, c in enumerate(kids)}
         base = 3 * len(kids)
@@ -151,6 +154,7 @@ class _Problem:
         # sub[i, k]: joint k (of kids) is on used marker i's path; sub2[i, k, k']: both are
         self.sub = np.zeros((self.used.size, len(kids)))
         self.sub[self.di, self.dc] = 1.0
+        self.below = self.sub[:, [self.gi[c] // 3 for c in self.soft]]  # (U, ns): marker below soft joint
         self.sub2 = self.sub[:, :, None] * self.sub[:, None, :]
         self.sub_mask = np.repeat(np.repeat(self.sub.T, 3, axis=0), 3, axis=1)  # (nd, 3U)
         j_, c_, k_ = np.meshgrid(np.arange(3), np.arange(len(kids)), np.arange(3), indexing="ij")
@@ -185,7 +189,9 @@ class _Problem:
                     s_ = int(parent[s_])
 
         def rows(segs):
-            return np.concatenate([np.arange(3 + 3 * x, 6 + 3 * x) for x in segs]).astype(int)
+            out = [np.arange(3 + 3 * x, 6 + 3 * x) for x in segs]
+            out += [3 + 3 * S + 3 * i + np.arange(3) for i, c in enumerate(self.soft) if c in segs]
+            return np.concatenate(out).astype(int)
 
         t_used = self.seg[self.used]
         self.trunk = np.concatenate([np.arange(3), rows(sorted(trunk))])
@@ -243,14 +249,16 @@ class _Problem:
         return out
 
     def fk(self, p, R, d, l):
+        """p (F, 3 + 3 ns): the root's origin, then each soft joint's offset (see ``soft``)."""
         F = p.shape[0]
         P = np.empty((F, self.S, 3))
         G = np.zeros((F, self.S, 3))
+        off = {c: d[c] + p[:, 3 + 3 * i : 6 + 3 * i] for i, c in enumerate(self.soft)}
         for s in self.order:
             if self.parent[s] < 0:
-                P[:, s] = p
+                P[:, s] = p[:, :3]
             else:
-                G[:, s] = R[:, self.parent[s]] @ d[s]
+                G[:, s] = (R[:, self.parent[s]] @ off[s][..., None])[..., 0] if s in off else R[:, self.parent[s]] @ d[s]
                 P[:, s] = P[:, self.parent[s]] + G[:, s]
         t = self.seg[self.used]
         x = P[:, t] + np.einsum("fmij,mj->fmi", R[:, t], l[self.used])
@@ -288,10 +296,13 @@ class _Problem:
         u = np.where((self.fn >= 0)[None, :, None], G[:, np.maximum(self.fn, 0)], own[:, self.fi])
         # the rows of marker m in segment s's rotation columns are -hat(u) w, so in JfT hat(u) w
         Hu = _hat(u) * w[:, self.fi, None, None]  # (n, E, 3, 3)
-        JfT = np.zeros((n, S + 1, 3, 3, U))
+        JfT = np.zeros((n, S + 1 + len(self.soft), 3, 3, U))
         for k in range(3):
             JfT[:, 0, k, k, :] = w
         JfT.reshape(n, -1)[:, self.jac_at] = Hu.reshape(n, -1)
+        if self.soft:  # a soft joint's offset moves every marker below it by R_parent times it
+            Rs = R[:, self.parent[self.soft]]  # (n, ns, 3, 3)
+            JfT[:, S + 1 :] = Rs.transpose(0, 1, 3, 2)[..., None] * (w[:, None, :] * self.below.T[None])[:, :, None, None, :]
         r = (x - self.y[sl][:, self.used]) * w[..., None]
         return JfT.reshape(n, nf, 3 * U), Rw, Hu, r
 
@@ -322,10 +333,14 @@ class _Problem:
         np.matmul(A.reshape(n, nf, nd), BD, out=X[..., :nd])
         X[..., ng] = (JfT @ r.transpose(0, 2, 1).reshape(n, 3 * U, 1))[..., 0]
         # marker columns: root rows w R_t, a path segment's rows hat(u) w R_t, zero elsewhere
-        Xl = X[..., nd:ng].reshape(n, S + 1, 3, U, 3)
+        Xl = X[:, : 3 * (S + 1), nd:ng].reshape(n, S + 1, 3, U, 3)
         Xl[:] = 0.0
         Xl[:, 0] = Rw.transpose(0, 2, 1, 3)
         X.reshape(n, -1)[:, self.xl_at] = (Hu @ Rw[:, self.fi]).reshape(n, -1)
+        if self.soft:  # a soft joint's rows: R_parent^T w R_t for each marker below it
+            Rs = R[sl][:, self.parent[self.soft]]
+            El = np.einsum("nika,nmkb->niamb", Rs, Rw) * self.below.T[None, :, None, :, None]
+            X[:, 3 * (S + 1) :, nd:ng] = El.reshape(n, 3 * len(self.soft), 3 * U)
         Hgg = np.zeros((ng, ng))
         # bone-bone: joints c, e share the visible markers below both
         both = (w @ self.sub2.reshape(U, nk * nk)).reshape(n, nk, 1, nk, 1)
@@ -366,6 +381,7 @@ def refine_skeleton(
     prior_weights: np.ndarray | None = None,
     like_bones: list[tuple[int, int, float]] | None = None,
     hold_weights: dict[int, tuple[float, float]] | None = None,
+    soft: dict[int, float] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -403,12 +419,20 @@ def refine_skeleton(
     hold_weights : {child segment: (weight relative to its parent's markers, to its own)} for the joints of
         ``hold_along``: the hold's weight for the whole fit, joint by joint (a Gaussian of sigma against marker
         noise sigma_n weighs sigma_n^2 / sigma^2), instead of ``hold_weight`` per frame for all.
+    soft : {child segment c: weight per frame}: c's joint is soft: in each frame it may sit off its fixed place in
+        the parent's frame by e_cf, weight x |e_cf|^2 (a Gaussian of sigma against marker noise sigma_n weighs
+        sigma_n^2 / sigma^2): a joint that is no fixed point (a shoulder on its girdle, a spine's turn over many
+        vertebrae) wanders about its place instead of pulling its segments' poses. The result's offsets are the
+        fixed places.
     """
     parent = np.asarray(parent)
     S = len(parent)
     F = observed.shape[0]
-    pr = _Problem(parent, np.asarray(marker_segment), observed)
-    p = np.array(root_pos, dtype=float)
+    soft_c = [int(c) for c in sorted(soft or {}) if parent[int(c)] >= 0 and soft[c] > 0]
+    pr = _Problem(parent, np.asarray(marker_segment), observed, soft_c)
+    ws = np.repeat([float(soft[c]) for c in soft_c], 3)  # the soft offsets' prior weights, per unknown
+    se = 3 + 3 * S + np.arange(ws.size)  # their rows in a frame's pose
+    p = np.hstack([np.asarray(root_pos, dtype=float), np.zeros((F, ws.size))])
     R = np.array(rot, dtype=float)
     d = np.zeros((S, 3))
     for c in pr.kids:
@@ -460,7 +484,7 @@ def refine_skeleton(
     T = np.array(trows).reshape(-1, ng)
 
     def total(p_, R_, d_, l_) -> float:
-        c = pr.cost(p_, R_, d_, l_)
+        c = pr.cost(p_, R_, d_, l_) + float(np.sum(ws * p_[:, 3:] ** 2))
         if Hh.shape[0]:
             r = Hh @ _pack(pr, d_, l_) - h0
             c += k_hold * float(r @ r)
@@ -497,12 +521,16 @@ def refine_skeleton(
         sl = chunks[j]
         if msg[0] == 0:
             Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, *msg[1:])
+            if ws.size:  # the soft joints' offsets: their prior
+                Hff[:, se, se] += ws
+                X[:, se, ng] += ws * msg[1][sl][:, 3:]
             if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
                 i = ref_frame - sl.start
-                Hff[i, 3:, :] = 0.0
-                Hff[i, :, 3:] = 0.0
-                Hff[i, 3:, 3:] = np.eye(nf - 3)
-                X[i, 3:] = 0.0
+                rot = slice(3, 3 + 3 * S)
+                Hff[i, rot, :] = 0.0
+                Hff[i, :, rot] = 0.0
+                Hff[i, rot, rot] = np.eye(3 * S)
+                X[i, rot] = 0.0
             X[:, :, :ng][:, :, fix_g] = 0.0
             store[j] = [Hff, X, None]
             return Hgg_f, bg_f
@@ -559,8 +587,8 @@ def refine_skeleton(
                     dg1 = np.append(dg, 1.0)
                     steps = shares.call([(2, dg1, lam)] * len(chunks))
                     df = np.concatenate([h for h, _ in steps])
-                    p1 = p + df[:, :3]
-                    R1 = _exp(df[:, 3:].reshape(F, S, 3)) @ R
+                    p1 = p + np.hstack([df[:, :3], df[:, 3 + 3 * S :]])
+                    R1 = _exp(df[:, 3 : 3 + 3 * S].reshape(F, S, 3)) @ R
                     d1 = d.copy()
                     for c in pr.kids:
                         d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
@@ -602,6 +630,7 @@ def refine_skeleton(
         p, R, d, l, cost, it = iterate(1)
     objective = float(cost)
     cost = pr.cost(p, R, d, l)  # the markers' part (without the penalty of held axes)
+    p = p[:, :3].copy()  # the root's origin; the soft joints' offsets about their fixed places are not kept
     # fix the gauge: identity rotations at the reference frame, the root's origin among its children
     Q = R[ref_frame].copy()  # (S, 3, 3)
     R = R @ np.swapaxes(Q, -1, -2)[None]

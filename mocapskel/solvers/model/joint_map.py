@@ -202,7 +202,8 @@ def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.nd
 
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
-               bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True) -> Skeleton:
+               bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
+               soft_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -247,7 +248,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          hold_along=hold, hold_weights=hold_w)
+                          hold_along=hold, hold_weights=hold_w,
+                          soft={c: inflate * sn**2 / soft_sigma**2 for c in range(len(start.names)) if start.parent[c] >= 0}
+                          if soft_sigma > 0 else None)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
