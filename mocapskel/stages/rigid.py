@@ -149,11 +149,11 @@ class Params:
     opensim_test_walking it matched 6 of 6 joints at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS,
     "A prior along a hinge's axis")."""
     soft_sigma: float = 0.0
-    """With ``joint_model="map"``: every joint is soft (``refine_skeleton``'s ``soft``): in each frame it may sit off
-    its fixed place in its parent's frame by a Gaussian offset of this standard deviation (mm per axis); 0: none.
-    15-30 mm bring the model path to the rules' joint counts on the real human references (at a higher rms) and lose
-    on the generated tuning half, whose joints are exact points (BENCHMARKS, "Soft joints"); off until the
-    generator's joints move as real ones do."""
+    """With ``joint_model="map"``: the joints between two segments of three markers or more are soft
+    (``refine_skeleton``'s ``soft``): in each frame such a joint may sit off its fixed place in its parent's frame by
+    a Gaussian offset of this standard deviation (mm per axis); 0: none. At 15 mm every real human reference gains
+    and the generated cmu41 halves are about even, but the 48-marker range of motion, whose joints are exact, loses
+    1.2-1.5 mm (BENCHMARKS, "Soft joints"): off until the take's own evidence chooses it."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""

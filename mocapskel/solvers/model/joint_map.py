@@ -200,6 +200,13 @@ def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.nd
     return hold, w
 
 
+def _soft_joints(skel: Skeleton, weight: float) -> dict[int, float]:
+    """{child segment: ``weight``} for the joints that may be soft: both segments carry three markers or more, so
+    that each has a pose of its own (a segment of one or two markers is posed through its joints)."""
+    n = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(skel.names))
+    return {c: weight for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
+
+
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
@@ -249,8 +256,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
                           hold_along=hold, hold_weights=hold_w,
-                          soft={c: inflate * sn**2 / soft_sigma**2 for c in range(len(start.names)) if start.parent[c] >= 0}
-                          if soft_sigma > 0 else None)
+                          soft=_soft_joints(start, inflate * sn**2 / soft_sigma**2) if soft_sigma > 0 else None)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
