@@ -3,7 +3,7 @@ model's MAP with explicit priors (``joint_model="map"``), side by side.
 
     python -m bench.joint_model                       # markdown to stdout (slow: every case, both halves)
     python -m bench.joint_model --tune                # the prior's scale on the tuning seeds only
-    python -m bench.joint_model --tune --gait         # the realistic takes with a gait lab's marker set
+    python -m bench.joint_model --tune --markerset gait   # the realistic takes with a gait lab's marker set
     python -m bench.joint_model --json --case realistic rom 1 --scales 0.5   # one case (internal)
     python -m bench.joint_model --compact RAW.json 0.1   # rules against one scale, from a --raw file
 
@@ -94,8 +94,8 @@ def generated_case(kind: str, motion: str, seed: int, scales: list[float]) -> di
     from mocapskel.errors import MocapskelError
     from mocapskel.synth.presets import active_rom, make, realistic
 
-    if kind in ("realistic", "gait"):  # the cmu41 marker set, or a gait lab's (clusters and wands)
-        take = make(realistic(seed=seed, frames=FRAMES, motion=motion, markerset="cmu41" if kind == "realistic" else "gait"))
+    if kind in ("realistic", "gait", "cluster"):  # the cmu41 marker set, a gait lab's, or sliding cluster plates
+        take = make(realistic(seed=seed, frames=FRAMES, motion=motion, markerset="cmu41" if kind == "realistic" else kind))
     else:
         take = make(active_rom(seed, frames=ROM48_FRAMES))
     clean = pipeline.run_until(take.markers, "clean").artifact
@@ -246,8 +246,8 @@ def main() -> None:
                          "that move (no-moves: without any); evidence: the depth and leaf moves weighed against the data")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
-    ap.add_argument("--gait", action="store_true", help="the realistic takes with a gait lab's marker set instead of cmu41 "
-                    "(and no rom48)")
+    ap.add_argument("--markerset", choices=["cmu41", "gait", "cluster"], default="cmu41",
+                    help="the realistic takes' marker set (gait, cluster: without the 48-marker range of motion)")
     a = ap.parse_args()
     VARIANTS[:] = a.variants
     if a.compact:
@@ -273,8 +273,8 @@ def generated(a) -> None:
     cases = None
     if a.motions:
         cases = [("realistic", m) for m in a.motions if m != "rom48"] + ([("rom48", "rom")] if "rom48" in a.motions else [])
-    if a.gait:
-        cases = [("gait", m) for m in (a.motions or MOTIONS) if m != "rom48"]
+    if a.markerset != "cmu41":
+        cases = [(a.markerset, m) for m in (a.motions or MOTIONS) if m != "rom48"]
     text, raw = generated_table(seeds, a.scales, cases, a.raw)
     if a.raw:
         Path(a.raw).write_text(json.dumps(raw, indent=1))
