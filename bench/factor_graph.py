@@ -109,8 +109,9 @@ def capture(markers, truth, name: str, refine_frames: int = 300) -> Case:
 
     joint_map.refine_skeleton, joint_map.refinement_frames = refine, frames
     try:
+        # rigid joints: the factor graph built from the recorded problem has no soft joints' offsets
         rigid.run(joints, replace(params.get("rigid") or rigid.Params(), joint_model="map", uncertainty=False,
-                                  refine_frames=refine_frames))
+                                  refine_frames=refine_frames, soft_sigma=0.0))
     except _Stop:
         pass
     finally:

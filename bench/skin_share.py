@@ -4,7 +4,8 @@ skeleton the take does not have, against noise the model describes.
     python -m bench.skin_share                 # markdown to stdout: generated takes, then real ones
     python -m bench.skin_share --only real     # one half
 
-Each take is fitted up to the rigid stage with the model's MAP (``rigid.Params(joint_model="map")``;
+Each take is fitted up to the rigid stage with the model's MAP, its joints rigid (``rigid.Params(joint_model="map",
+soft_sigma=0.0)``: the residual of the model whose joints are fixed points;
 generated takes with their true grouping and tree handed in), and its refinement's residual measured by
 :func:`mocapskel.solvers.model.skin.skin_motion` (the report's ``uncertainty.skin_share`` measures the fit's
 final skeleton the same way): noise that does not depend on the pose gives about 0; skin moved by the joint
@@ -51,7 +52,7 @@ def generated_case(motion: str, seed: int) -> dict:
         take = make(realistic(seed=seed, frames=600, motion=motion, markerset="cmu41"))
     clean = pipeline.run_until(take.markers, "clean").artifact
     joints = pipeline.run_until(evaluate.true_topology(take.truth, clean), "joints").artifact
-    skel = pipeline.run_until(joints, "rigid", {"rigid": rigid.Params(joint_model="map")}).artifact
+    skel = pipeline.run_until(joints, "rigid", {"rigid": rigid.Params(joint_model="map", soft_sigma=0.0)}).artifact
     return angle_share(skel)
 
 
@@ -63,7 +64,7 @@ def real_case(rel: str) -> dict:
     if not path.exists():
         return {"error": "absent"}
     params = pipeline.make_params(up="z", units="mm")
-    params["rigid"] = rigid.Params(joint_model="map")
+    params["rigid"] = rigid.Params(joint_model="map", soft_sigma=0.0)
     return angle_share(pipeline.run_until(path, "rigid", params).artifact)
 
 
