@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocapskel import pipeline
-from mocapskel.solvers.model.calibrate import _exp, _Problem
+from mocapskel.solvers.model.calibrate import _exp, _Problem, _step
 from mocapskel.synth.chains import hang_chain
 
 
@@ -28,11 +28,7 @@ def test_normal_equations_with_soft_joints_match_a_dense_finite_difference_jacob
 
     def residual(x):
         pose, g = x[: F * nf].reshape(F, nf), x[F * nf :]
-        d1, l1 = d.copy(), l.copy()
-        for c in pr.kids:
-            d1[c] += g[pr.gi[c] : pr.gi[c] + 3]
-        for m in pr.used:
-            l1[m] += g[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+        d1, l1 = _step(pr, d, l, g)
         return pr.residual(p + pose[:, lin], _exp(pose[:, 3 : 3 + 3 * S].reshape(F, S, 3)) @ R, d1, l1).ravel()
 
     n = F * nf + ng

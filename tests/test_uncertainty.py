@@ -12,7 +12,7 @@ import pytest
 from mocapskel import pipeline
 from mocapskel.evaluate import segment_map
 from mocapskel.solvers.model import uncertainty as unc_mod
-from mocapskel.solvers.model.calibrate import _exp, _Problem
+from mocapskel.solvers.model.calibrate import _exp, _Problem, _step
 from mocapskel.stages import rigid
 from mocapskel.synth.chains import hang_chain, hinge_chain
 
@@ -52,11 +52,7 @@ def _dense_chain_problem():
 
     def residual(x):
         pose, g = x[: F * nf].reshape(F, nf), x[F * nf :]
-        d1, l1 = d.copy(), l.copy()
-        for c in pr.kids:
-            d1[c] += g[pr.gi[c] : pr.gi[c] + 3]
-        for m in pr.used:
-            l1[m] += g[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+        d1, l1 = _step(pr, d, l, g)
         return pr.residual(p + pose[:, :3], _exp(pose[:, 3:].reshape(F, S, 3)) @ R, d1, l1).ravel()
 
     n = F * nf + ng

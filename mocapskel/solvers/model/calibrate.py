@@ -435,8 +435,7 @@ def refine_skeleton(
     p = np.hstack([np.asarray(root_pos, dtype=float), np.zeros((F, ws.size))])
     R = np.array(rot, dtype=float)
     d = np.zeros((S, 3))
-    for c in pr.kids:
-        d[c] = origin[c] - origin[parent[c]]
+    d[pr.kids] = np.asarray(origin)[pr.kids] - np.asarray(origin)[parent[pr.kids]]
     l = np.array(marker_local, dtype=float)
     nf, ng = pr.nf, pr.ng
     W = max(pr.w.sum(), 1.0)
@@ -465,8 +464,7 @@ def refine_skeleton(
     else:
         a_origin, a_local = (np.asarray(x, dtype=float) for x in anchor)
         d_a = np.zeros((S, 3))
-        for c in pr.kids:
-            d_a[c] = a_origin[c] - a_origin[parent[c]]
+        d_a[pr.kids] = a_origin[pr.kids] - a_origin[parent[pr.kids]]
         g0 = _pack(pr, d_a, a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
     h0 = Hh @ g0
@@ -589,12 +587,7 @@ def refine_skeleton(
                     df = np.concatenate([h for h, _ in steps])
                     p1 = p + np.hstack([df[:, :3], df[:, 3 + 3 * S :]])
                     R1 = _exp(df[:, 3 : 3 + 3 * S].reshape(F, S, 3)) @ R
-                    d1 = d.copy()
-                    for c in pr.kids:
-                        d1[c] += dg[pr.gi[c] : pr.gi[c] + 3]
-                    l1 = l.copy()
-                    for m in pr.used:
-                        l1[m] += dg[pr.gl[int(m)] : pr.gl[int(m)] + 3]
+                    d1, l1 = _step(pr, d, l, dg)
                     c1 = total(p1, R1, d1, l1)
                     # the decrease the damped linear model predicts, h^T (lam diag(H) h - b) (Madsen, Nielsen &
                     # Tingleff 2004, eq. 3.10, for a cost of sum r^2 and b = J^T r)
@@ -660,12 +653,15 @@ def refine_skeleton(
 
 def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:
     """The constant unknowns (bone offsets, then used markers' offsets) as one vector."""
-    g = np.zeros(pr.ng)
-    for c in pr.kids:
-        g[pr.gi[c] : pr.gi[c] + 3] = d[c]
-    for m in pr.used:
-        g[pr.gl[int(m)] : pr.gl[int(m)] + 3] = l[m]
-    return g
+    return np.concatenate([np.asarray(d)[pr.kids].ravel(), np.asarray(l)[pr.used].ravel()])
+
+
+def _step(pr: _Problem, d: np.ndarray, l: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``d`` and ``l`` moved by ``g``, a step of the constant unknowns laid out as :func:`_pack` lays them."""
+    d1, l1 = np.array(d, dtype=float), np.array(l, dtype=float)
+    d1[pr.kids] += g[: pr.nd].reshape(-1, 3)
+    l1[pr.used] += g[pr.nd : pr.ng].reshape(-1, 3)
+    return d1, l1
 
 
 def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = None,
