@@ -127,13 +127,6 @@ def _unpack(case: Case):
             np.asarray(obs, float), np.asarray(rot, float), np.asarray(root, float))
 
 
-def _offsets(pr, parent, origin) -> np.ndarray:
-    d = np.zeros((len(parent), 3))
-    for c in pr.kids:
-        d[c] = origin[c] - origin[parent[c]]
-    return d
-
-
 def objective(pr, A, u0, p, R, d, l) -> float:
     """Our objective, computed outside both solvers: squared marker residuals plus the weighted priors."""
     r = A @ calibrate._pack(pr, d, l) - u0 if A.shape[0] else np.zeros(0)
@@ -180,14 +173,14 @@ class GraphModel:
         self.pr = pr = calibrate._Problem(parent, seg, obs)
         self.parent, self.seg, self.ref = parent, seg, int(ref_frame)
         self.F, self.S = obs.shape[0], len(parent)
-        self.d0, self.l0 = _offsets(pr, parent, origin), local.copy()
+        self.d0, self.l0 = pr.offsets(origin), local.copy()
         self.R0, self.p0 = rot.copy(), root.copy()
         # gauge: the root's first joint's offset fixed (as ours), the reference frame's rotations fixed
         rk0 = [c for c in pr.kids if parent[c] == pr.root]
         self.fixed_d = rk0[0] if rk0 else None
         self.A = calibrate._joint_prior_operator(pr, parent, weights=np.asarray(prior_weights, float))
         a_origin, a_local = anchor
-        self.u0 = self.A @ calibrate._pack(pr, _offsets(pr, parent, np.asarray(a_origin, float)),
+        self.u0 = self.A @ calibrate._pack(pr, pr.offsets(a_origin),
                                            np.asarray(a_local, float))
         self.seen = np.isfinite(obs).all(-1)
         self.obs = obs
@@ -496,7 +489,7 @@ def run_case(case: Case, lm_cap: int = 1000, tight: bool = True) -> dict:
         u_plain = unc_mod.joint_uncertainty(parent, res.origin, seg, res.marker_local, obs, res.rot, res.root_pos,
                                             ref_frame=ref)
         out["ours_unc_plain_s"] = time.perf_counter() - t
-    d_ours = _offsets(pr, parent, res.origin)
+    d_ours = pr.offsets(res.origin)
 
     # gtsam: the same start, the same priors, LM, then the marginals
     t = time.perf_counter()
@@ -560,7 +553,7 @@ def run_case(case: Case, lm_cap: int = 1000, tight: bool = True) -> dict:
         kw_t = dict(kw, tol=1e-12, iterations=200)
         res_t = calibrate.refine_skeleton(*case.args, **kw_t)
         sol_t, it_t, _ = lm_loop(graph, v0, 200, 1e-12)
-        Jo = pr.fk(res_t.root_pos, res_t.rot, _offsets(pr, parent, res_t.origin), res_t.marker_local)[0][:, pr.kids]
+        Jo = pr.fk(res_t.root_pos, res_t.rot, pr.offsets(res_t.origin), res_t.marker_local)[0][:, pr.kids]
         Jg = pr.fk(*gm.read(sol_t))[0][:, pr.kids]
         out["tight_maps_max_mm"] = float(np.sqrt(np.sum((Jo - Jg) ** 2, -1)).max())
         out["tight_obj"] = (res_t.objective, 2.0 * graph.error(sol_t))

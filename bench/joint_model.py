@@ -39,7 +39,7 @@ REAL_TAKES = ("cmu/07_01.c3d", "cmu/85_02.c3d", "c3d_org_samples/Eb015pr.c3d", "
 
 #: each model variant's data term weight, prior mean, like limbs' bone sigma, hinge prior, its placed hinges and
 #: soft joints (``rigid.Params.data_weight``, ``prior_mean``, ``bone_sigma``, ``hinge_scale``, ``hinge_placed``,
-#: ``soft_sigma``); what a variant leaves out is 0 (``hinge_placed``: True)
+#: ``soft_sigma``, ``mirror_prior``); what a variant leaves out is 0 (``hinge_placed``: True)
 WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepened", 0.0),
            "map-eff-start": ("effective", "start", 0.0), "map-eff-like": ("effective", "deepened", 0.03),
            "map-like": ("frames", "deepened", 0.03),
@@ -49,7 +49,8 @@ WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepene
            "map-eff-now": ("effective", "deepened+leaf", 0.03, 0.01, False),
            "map-soft-15": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0),
            "map-soft-30": ("frames", "deepened+leaf", 0.03, 0.01, False, 30.0),
-           "map-soft-60": ("frames", "deepened+leaf", 0.03, 0.01, False, 60.0)}
+           "map-soft-60": ("frames", "deepened+leaf", 0.03, 0.01, False, 60.0),
+           "map-mirror": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0, True)}
 #: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
 ABLATIONS = {
     "rules": {},
@@ -76,7 +77,7 @@ def _rigid(mode: str, scale: float):
     w, mean, bone, *hinge = WEIGHTS[mode]
     return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone,
                         hinge_scale=hinge[0] if hinge else 0.0, hinge_placed=hinge[1] if len(hinge) > 1 else True,
-                        soft_sigma=hinge[2] if len(hinge) > 2 else 0.0)
+                        soft_sigma=hinge[2] if len(hinge) > 2 else 0.0, mirror_prior=len(hinge) > 3 and hinge[3])
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:

@@ -789,3 +789,33 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     np.testing.assert_array_equal(again.origin, alone.origin)
     np.testing.assert_array_equal(again.rot, alone.rot)
     assert again.n_iter == alone.n_iter == 5
+
+
+def test_a_plane_factor_puts_the_mean_of_its_joints_in_the_plane_through_their_parents_markers(exact_two_marker):
+    """``refine_skeleton(planes=...)``: a heavy factor holds the mean of two joints in the plane through their parent's
+    marker centroid (any normal: here one the exact hips are 10-40 mm off), at the cost of the marker fit; a
+    factor of weight 0 leaves the exact skeleton as it is."""
+    take, exact = exact_two_marker
+    pts = take.markers.points
+    use = pick_frames(np.isfinite(pts).all(-1), 120, must=exact.rest_frame)
+    ref = int(np.searchsorted(use, exact.rest_frame))
+    start = motion.solve(exact, pts[use], motion._centres_by_edges(exact, exact.joints.centres)[use])
+    root = int(np.flatnonzero(exact.parent < 0)[0])
+    a, b = (int(c) for c in np.flatnonzero(exact.parent == root)[:2])
+    own = exact.marker_segment == root
+
+    def off_plane(origin, local, n):
+        return float(n @ (0.5 * (origin[a] + origin[b]) - origin[root] - local[own].mean(0)))
+
+    n = np.array([0.3, 0.9, -0.2]) / np.linalg.norm([0.3, 0.9, -0.2])
+    for n_try in (n, np.array([0.9, -0.3, 0.3]) / np.linalg.norm([0.9, -0.3, 0.3])):
+        if abs(off_plane(exact.origin, exact.marker_local, n_try)) > 10.0:
+            n = n_try
+            break
+    before = off_plane(exact.origin, exact.marker_local, n)
+    assert abs(before) > 10.0
+    for w, close in ((1e6, lambda x: abs(x) < 0.05), (0.0, lambda x: abs(x - before) < 0.05)):
+        res = refine_skeleton(exact.parent, exact.origin, exact.marker_segment, exact.marker_local, pts[use],
+                              start.rot, start.root_pos, ref_frame=ref, iterations=60, planes=[((a, b), n, w)])
+        assert close(off_plane(res.origin, res.marker_local, n)), (w, off_plane(res.origin, res.marker_local, n))
+    assert res.rms[1] < 1e-3  # weight 0: the exact fit

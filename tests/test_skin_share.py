@@ -43,7 +43,8 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
     parent, seg, origin, local, rot, root, pts, knee = _two_segments(rng)
     sigma = 1.0
     noisy = pts + rng.normal(0.0, sigma, pts.shape)
-    assert abs(skin_motion(parent, seg, origin, local, noisy, rot, root).share) < 0.03
+    white = skin_motion(parent, seg, origin, local, noisy, rot, root)
+    assert abs(white.share) < 0.03 and white.z < 3.0, white
 
     k = knee - knee.mean(0)
     feats = np.concatenate([k, k[:, [0, 1, 2, 0, 0, 1]] * k[:, [0, 1, 2, 1, 2, 2]]], axis=1)
@@ -56,11 +57,19 @@ def test_the_share_is_the_part_of_the_residual_the_joint_angle_makes():
         expected = 3 * s_mm**2 / (6 * sigma**2 + 3 * s_mm**2)
         sm = skin_motion(parent, seg, origin, local, moved, rot, root)
         assert abs(sm.share - expected) < 0.04, (sm.share, expected)
+        assert sm.z > 10.0, sm.z  # far beyond chance
         # per segment: the shank's markers' explained variance per coordinate is the skin's, the thigh's none;
         # the knee's angular variance is its turn's
         assert abs(sm.explained[1] - s_mm**2) < 0.1 * s_mm**2, (sm.explained, s_mm**2)
         assert sm.explained[0] < 0.05 * s_mm**2
         assert np.isclose(sm.angle_var[1], np.sum(knee.var(0)), rtol=1e-6)
+    # noise correlated in time (an AR(1) process of lag-one correlation 0.9, independent of the pose): smooth
+    # regressors explain more of it than of white noise, and the test counts the frames as the fewer they are worth
+    ar = rng.normal(0.0, sigma, pts.shape)
+    for f in range(1, ar.shape[0]):
+        ar[f] = 0.9 * ar[f - 1] + np.sqrt(1 - 0.81) * ar[f]
+    corr = skin_motion(parent, seg, origin, local, pts + ar, rot, root)
+    assert corr.z < 3.0, corr
     # unseen markers are left out of their frames, not taken as zeros
     holed = noisy.copy()
     holed[rng.random(holed.shape[:2]) < 0.1] = np.nan

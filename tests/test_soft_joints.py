@@ -21,9 +21,7 @@ def test_normal_equations_with_soft_joints_match_a_dense_finite_difference_jacob
     assert nf == 3 + 3 * S + 3 * len(soft)
     # the root's origin, then each soft joint's offset, away from 0
     p = np.hstack([skel.pose_root[keep], np.random.default_rng(2).normal(scale=20.0, size=(F, 3 * len(soft)))])
-    d = np.zeros((S, 3))
-    for c in pr.kids:
-        d[c] = skel.origin[c] - skel.origin[skel.parent[c]]
+    d = pr.offsets(skel.origin)
     lin = np.r_[0:3, 3 + 3 * S : nf]  # a frame's pose unknowns that add to p
 
     def residual(x):

@@ -31,10 +31,7 @@ def hinge():
 def _skeleton_problem(skel):
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
     pr = _Problem(skel.parent, skel.marker_segment, pts)
-    d = np.zeros((len(skel.parent), 3))
-    for c in pr.kids:
-        d[c] = skel.origin[c] - skel.origin[skel.parent[c]]
-    return pts, pr, d
+    return pts, pr, pr.offsets(skel.origin)
 
 
 def _dense_chain_problem():

@@ -156,6 +156,9 @@ class Params:
     gains on both halves over three marker sets (sliding clusters most: 46.7 -> 34.2 mm, past the rules' 41.2) and
     every real reference gains; the 48-marker range of motion, whose joints are exact, loses 1.2-1.5 mm (BENCHMARKS,
     "Soft joints", "Sliding clusters")."""
+    mirror_prior: bool = False
+    """With ``joint_model="map"``: like limbs' first joints (two hips on a pelvis) lie in their parent's plane of
+    symmetry, their mean's distance from it a Gaussian as wide as the parent's markers are far from symmetric."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -367,7 +370,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
                          bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                         soft_sigma=params.soft_sigma)
+                         soft_sigma=params.soft_sigma, mirror=params.mirror_prior)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]

@@ -248,6 +248,11 @@ class _Problem:
             out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
         return out
 
+    def offsets(self, origin) -> np.ndarray:  # (S, 3) the bone offsets d of the rest-pose origins (S, 3)
+        d = np.zeros((self.S, 3))
+        d[self.kids] = np.asarray(origin)[self.kids] - np.asarray(origin)[self.kid_parent]
+        return d
+
     def fk(self, p, R, d, l):
         """p (F, 3 + 3 ns): the root's origin, then each soft joint's offset (see ``soft``)."""
         F = p.shape[0]
@@ -382,6 +387,7 @@ def refine_skeleton(
     like_bones: list[tuple[int, int, float]] | None = None,
     hold_weights: dict[int, tuple[float, float]] | None = None,
     soft: dict[int, float] | None = None,
+    planes: list[tuple[tuple[int, ...], np.ndarray, float]] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -391,22 +397,15 @@ def refine_skeleton(
     ref_frame : the frame (index into ``observed``) whose pose becomes the rest pose.
     iterations, tol : Levenberg–Marquardt limits; stops when the cost falls by less than ``tol`` (relative).
     chunk : most frames whose normal equations are formed and eliminated together (on one thread).
-    hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints whose position
-        along that axis, relative to the marker centroid of each of their two segments, is held
-        where it starts (where ``anchor`` has it, when given) — hinges, whose centre the markers
-        hardly fix along their axis, placed there by the joints stage. Held relative to the
-        markers, not to the parent's origin: a chain of hinges about one axis (hip, knee and ankle
-        in a walk) would otherwise slide along it together, every joint keeping its offset from
-        the next (a real walk's knee went 90 mm along its axis, out of the leg).
-    hold_weight : weight (per frame, mm^-2 per mm^2) of that hold: a prior, as ``joint_prior``,
-        that the markers outweigh wherever they fix the position (a hinge that also turns a
-        little about another axis), and that decides where they do not.
-    joint_prior : weight (per frame, mm^-2 per mm^2) of a prior that holds every joint where it
-        starts relative to the marker centroid of each of its two segments. Where the markers
-        fix a joint, their cost rises with every frame and swamps the prior; along a direction
-        they hardly fix (a hinge's axis, the twist of a two-marker segment, a joint the take
-        barely moves) the prior decides, so the joint stays near its markers instead of sliding
-        away at no cost. 0: no prior.
+    hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints (hinges) whose position along
+        that axis, relative to the marker centroid of each of their two segments, is held where it starts (where
+        ``anchor`` has it): relative to the markers, not to the parent's origin, or a chain of hinges about one
+        axis (a walk's hip, knee and ankle) slides along it together (a real walk's knee went 90 mm out of the leg).
+    hold_weight : weight (per frame, mm^-2 per mm^2) of that hold: a prior the markers outweigh where they fix it.
+    joint_prior : weight (per frame, mm^-2 per mm^2) of a prior that holds every joint where it starts relative to
+        the marker centroid of each of its two segments: where the markers fix a joint they swamp it; along a
+        direction they hardly fix (a hinge's axis, a two-marker segment's twist) it keeps the joint near its
+        markers instead of sliding away at no cost. 0: no prior.
     prior_joints : the child segments whose joints the prior holds (None: all).
     anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
         from another (a refinement of it); None: the start.
@@ -424,6 +423,8 @@ def refine_skeleton(
         sigma_n^2 / sigma^2): a joint that is no fixed point (a shoulder on its girdle, a spine's turn over many
         vertebrae) wanders about its place instead of pulling its segments' poses. The result's offsets are the
         fixed places.
+    planes : (children, unit normal at rest, weight): the mean of those children's joints lies in the plane through
+        their (common) parent's marker centroid, normal to that: weight (whole fit) x its squared distance from it.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -434,8 +435,7 @@ def refine_skeleton(
     se = 3 + 3 * S + np.arange(ws.size)  # their rows in a frame's pose
     p = np.hstack([np.asarray(root_pos, dtype=float), np.zeros((F, ws.size))])
     R = np.array(rot, dtype=float)
-    d = np.zeros((S, 3))
-    d[pr.kids] = np.asarray(origin)[pr.kids] - np.asarray(origin)[parent[pr.kids]]
+    d = pr.offsets(origin)
     l = np.array(marker_local, dtype=float)
     nf, ng = pr.nf, pr.ng
     W = max(pr.w.sum(), 1.0)
@@ -463,9 +463,7 @@ def refine_skeleton(
         g0 = _pack(pr, d, l)
     else:
         a_origin, a_local = (np.asarray(x, dtype=float) for x in anchor)
-        d_a = np.zeros((S, 3))
-        d_a[pr.kids] = a_origin[pr.kids] - a_origin[parent[pr.kids]]
-        g0 = _pack(pr, d_a, a_local)
+        g0 = _pack(pr, pr.offsets(a_origin), a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
     h0 = Hh @ g0
     # like bones: rows sqrt(w) (u_a . d_a - u_b . d_b), held to 0
@@ -479,6 +477,13 @@ def refine_skeleton(
             if n > 0:
                 row[pr.gi[c] : pr.gi[c] + 3] = sign * d[c] / n
         trows.append(np.sqrt(w) * row)
+    for kids, n, w in planes or ():  # rows sqrt(w) n . (mean joint - the parent's marker centroid)
+        row, ms = np.zeros(ng), [int(m) for m in pr.used if marker_segment[m] == parent[kids[0]]]
+        for c in kids:
+            row[pr.gi[c] : pr.gi[c] + 3] += n / len(kids)
+        for m in ms:
+            row[pr.gl[m] : pr.gl[m] + 3] -= n / len(ms)
+        trows.append(np.sqrt(w) * row if ms and w > 0 else 0.0 * row)
     T = np.array(trows).reshape(-1, ng)
 
     def total(p_, R_, d_, l_) -> float:

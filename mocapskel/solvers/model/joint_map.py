@@ -40,6 +40,15 @@ the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepen
 along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
 the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
 
+Soft joints (optional, ``soft_sigma`` > 0, :func:`_soft_joints`): in each frame a joint between two segments of
+three markers or more may sit off its fixed place by a Gaussian offset, a model of marker clusters sliding on the
+skin. Only where the take shows skin motion: the start's residual follows its joint angles (the skin regression's
+``z``, :func:`~mocapskel.solvers.model.skin.skin_motion`, above ``SKIN_Z``); a take whose residual is noise alone
+keeps its joints rigid.
+
+Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
+per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
+
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
 posterior is kept.
@@ -55,8 +64,10 @@ from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import refine_skeleton
 from ..rules.deepen import deepen_joints
 from ..rules.leaf_hinges import centre_leaf_hinges
+from ..rules.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
+from .skin import skin_motion
 from ..rest_pose import _bone_line, _rest_markers
 from ..rigid_shape import procrustes_shape
 from ..joints.hinges import _hinge_direction, _relative_rotations
@@ -65,6 +76,10 @@ from ..rotations import segments_seen
 #: Noise (mm, per axis) below which no optical system resolves a marker; the model's noise is at least
 #: this, so that a noise-free take does not turn the priors' weights to zero.
 NOISE_FLOOR_MM = 0.1
+
+#: The skin regression's z (standard deviations of chance) above which a take shows skin motion: a test at about
+#: the 0.1 % level. Measured: generated takes without skin motion -10 to -8, with it 58-88.
+SKIN_Z = 3.0
 
 
 def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
@@ -210,7 +225,7 @@ def _soft_joints(skel: Skeleton, weight: float) -> dict[int, float]:
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
-               soft_sigma: float = 0.0) -> Skeleton:
+               soft_sigma: float = 0.0, mirror: bool = False) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -218,7 +233,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     refinement's n frames count as :func:`effective_frames` n_eff independent ones: the data term is
     scaled by n_eff / n (the prior's weights by n / n_eff). With ``bone_sigma`` > 0, like limbs' bones
     (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
-    length at the start: one more factor each."""
+    length at the start: one more factor each. With ``mirror``, like limbs' first joints (and a child on the middle
+    line) lie in their parent's plane of symmetry (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`), their mean's
+    distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -244,6 +261,16 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             if sb > 0:
                 ties.append((x, y, inflate * sn**2 / sb**2))
                 tie_sig.append(sb)
+    planes = []
+    if mirror:  # the plane is known to within how far its markers are from mirror-symmetric
+        for kids, _, n, miss in mirror_planes(start):
+            sm = max(miss, sn)
+            planes.append((kids, n, inflate * sn**2 / sm**2))
+            tie_sig.append(sm)
+    skin_z = float("nan")
+    if soft_sigma > 0:  # soft joints model skin motion: none where the take shows none
+        skin_z = skin_motion(start.parent, start.marker_segment, start.origin, start.marker_local, pts[use],
+                             pose.rot, pose.root_pos).z
     hold, hold_w = {}, {}
     if hinge_scale > 0:
         placed = {start.names.index(n) for k in ("deepened", "leaf_centred") for n in centre.info.get(k, {})}
@@ -255,15 +282,15 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          hold_along=hold, hold_weights=hold_w,
-                          soft=_soft_joints(start, inflate * sn**2 / soft_sigma**2) if soft_sigma > 0 else None)
+                          hold_along=hold, hold_weights=hold_w, planes=planes,
+                          soft=_soft_joints(start, inflate * sn**2 / soft_sigma**2) if skin_z > SKIN_Z else None)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
-                       "prior_scale": scale, "neg_log_posterior": nlp,
+                       "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z,
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,

@@ -23,11 +23,16 @@ class SkinMotion:
     explained : (S,) per segment, the variance per coordinate (mm^2) of its markers' residual that its joint
         angles explain (NaN where not measured).
     angle_var : (S,) per child segment, the variance (rad^2) of its joint's turn about its mean over the frames
-        (the trace of the rotation vectors' covariance; NaN for the root or where never seen)."""
+        (the trace of the rotation vectors' covariance; NaN for the root or where never seen).
+    z : how far the explained variance lies above what chance explains, in standard deviations of chance: each
+        marker's R^2 with q regressors a Beta((q - 1) / 2, (n' - q) / 2) variable for n' independent frames, n' the
+        frames' effective number from the correlation in time of the regression's residual (noise that is
+        correlated in time is explained by smooth regressors more often than white noise)."""
 
     share: float
     explained: np.ndarray
     angle_var: np.ndarray
+    z: float = float("nan")
 
     def joint_sd(self, parent: np.ndarray) -> np.ndarray:
         """(S,) mm: how far skin that slides with child c's joint angle can have moved that joint unseen, the
@@ -65,12 +70,9 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
     marker_segment = np.asarray(marker_segment)
     S = len(parent)
     pr = _Problem(parent, marker_segment, observed)
-    d = np.zeros((S, 3))
-    for c in pr.kids:
-        d[c] = origin[c] - origin[parent[c]]
-    _, _, x = pr.fk(root_pos, rot, d, marker_local)
+    _, _, x = pr.fk(root_pos, rot, pr.offsets(origin), marker_local)
     res = observed[:, pr.used] - x
-    total = explained = 0.0
+    total = explained = z_ex = z_var = 0.0
     per_seg = np.full(S, np.nan)
     angle_var = np.full(S, np.nan)
     turns: dict[int, np.ndarray] = {}  # child c: its joint's rotation vectors, in c's axes
@@ -109,6 +111,10 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             beta = np.linalg.lstsq(X.T @ X, b, rcond=None)[0]
             ss = float((y * y).sum())
             ex = float((b * beta).sum()) - ss * (q - 1) / (n - 1)
+            ne = _effective(y - X @ beta)
+            if ne > q + 1:
+                z_ex += float((b * beta).sum()) - ss * (q - 1) / (ne - 1)
+                z_var += float(((y * y).sum(0) ** 2).sum()) * 2.0 * (q - 1) * (ne - q) / ((ne - 1) ** 2 * (ne + 1))
             seg_ss += ss
             seg_ex += ex
             seg_n += 3 * n
@@ -116,5 +122,23 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             per_seg[s] = max(seg_ex, 0.0) / seg_n
             total += seg_ss
             explained += seg_ex
-    return SkinMotion(share=explained / total if total > 0 else float("nan"), explained=per_seg, angle_var=angle_var)
+    return SkinMotion(share=explained / total if total > 0 else float("nan"), explained=per_seg, angle_var=angle_var,
+                      z=z_ex / np.sqrt(z_var) if z_var > 0 else float("nan"))
+
+
+def _effective(e: np.ndarray) -> float:
+    """The effective number of independent frames of residuals ``e`` (n, k) in time order: n / (1 + 2 sum rho_j),
+    the correlations rho_j summed while positive (Geyer's initial positive sequence)."""
+    n = e.shape[0]
+    e = e - e.mean(0)
+    v = float((e * e).sum())
+    if not v > 0:
+        return float(n)
+    tau = 1.0
+    for j in range(1, n // 2):
+        rho = float((e[j:] * e[:-j]).sum()) / v
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return n / tau
 

@@ -460,9 +460,7 @@ def joint_uncertainty(
     pr = _Problem(parent, np.asarray(marker_segment), observed)
     if not pr.kids or pr.used.size == 0:
         return None
-    d = np.zeros((S, 3))
-    for c in pr.kids:
-        d[c] = origin[c] - origin[parent[c]]
+    d = pr.offsets(origin)
     l = np.array(marker_local, dtype=float)
     p, R = np.asarray(root_pos, dtype=float), np.asarray(rot, dtype=float)
     n_obs, dof = _dof(pr)

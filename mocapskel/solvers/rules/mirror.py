@@ -117,13 +117,30 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
 
     skel : anything with ``origin``, ``marker_local``, ``marker_segment`` and ``parent`` (rest pose).
     """
+    origin = skel.origin
+    out: dict[int, np.ndarray] = {}
+    for kids, cen, n, _ in mirror_planes(skel, match, loose):
+        mid = origin[list(kids)].mean(0)
+        d = float((cen - mid) @ n) * n
+        for c in kids:
+            out[c] = d.copy()
+    return out
+
+
+def mirror_planes(skel, match: float = MIRROR_MATCH, loose: set | None = None
+                  ) -> list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float]]:
+    """[(children, centre, unit normal, miss)]: the first joints of like limbs (two children), or a child on the middle
+    line (one), whose mean lies in their parent's plane of symmetry, the plane through ``centre`` (the parent's
+    marker centroid at rest) normal to ``normal``, its markers reflected in it landing up to ``miss`` (mm) from one of
+    them (see :func:`mirror_shifts` for when a plane is found)."""
     pos, seg, count = _rest_groups(skel)
     parent = np.asarray(skel.parent)
     origin = skel.origin
-    out: dict[int, np.ndarray] = {}
+    out: list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float]] = []
+    done: set[int] = set()
     for p, a, b in like_subtrees(parent, count):
         mk = pos[seg == p]
-        if len(mk) < 2 or a in out or b in out:
+        if len(mk) < 2 or a in done or b in done:
             continue
         if loose is not None and not {a, b} <= loose:
             continue  # the markers fix one of them
@@ -138,14 +155,15 @@ def mirror_shifts(skel, match: float = MIRROR_MATCH, loose: set | None = None) -
         sides = [float((pos[seg == c].mean(0) - cen) @ n) for c in (a, b)]
         if not sides[0] * sides[1] < 0:
             continue  # not one limb on either side
-        d = float((cen - 0.5 * (origin[a] + origin[b])) @ n) * n
-        out[a], out[b] = d, d.copy()
+        out.append(((a, b), cen, n, miss))
+        done |= {a, b}
         # a child on the middle line (a trunk on the pelvis: its markers mirror onto themselves
         # in the same plane) has its joint in the plane too
         for c in (int(k) for k in np.flatnonzero(parent == p)):
             own = pos[seg == c]
-            if c in out or not len(own) or loose is not None and c not in loose:
+            if c in done or not len(own) or loose is not None and c not in loose:
                 continue
             if _mirror_miss(own, cen, n) <= match * sep:
-                out[c] = float((cen - origin[c]) @ n) * n
+                out.append(((c,), cen, n, miss))
+                done.add(c)
     return out
