@@ -50,7 +50,8 @@ WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepene
            "map-soft-15": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0),
            "map-soft-30": ("frames", "deepened+leaf", 0.03, 0.01, False, 30.0),
            "map-soft-60": ("frames", "deepened+leaf", 0.03, 0.01, False, 60.0),
-           "map-mirror": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0, True)}
+           "map-mirror": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0, True),
+           "map-soft-placed": ("frames", "deepened+leaf", 0.03, 0.01, True, 15.0)}
 #: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
 ABLATIONS = {
     "rules": {},

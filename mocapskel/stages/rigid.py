@@ -154,8 +154,9 @@ class Params:
     a Gaussian offset of this standard deviation (mm per axis); 0: none. Marker clusters slide on the skin as a whole
     (10-30 mm on a thigh), and rigid joints pass that misfit on to the neighbours' poses. At 15 mm the generated bench
     gains on both halves over three marker sets (sliding clusters most: 46.7 -> 34.2 mm, past the rules' 41.2) and
-    every real reference gains; the 48-marker range of motion, whose joints are exact, loses 1.2-1.5 mm (BENCHMARKS,
-    "Soft joints", "Sliding clusters")."""
+    every real reference gains (BENCHMARKS, "Soft joints", "Sliding clusters"). Only where the take shows skin motion
+    (:data:`~mocapskel.solvers.model.joint_map.SKIN_Z`): a take whose residual does not follow its joint angles keeps
+    rigid joints (the 48-marker range of motion, whose joints are exact: 4.0 -> 2.8 mm)."""
     mirror_prior: bool = False
     """With ``joint_model="map"``: like limbs' first joints (two hips on a pelvis) lie in their parent's plane of
     symmetry, their mean's distance from it a Gaussian as wide as the parent's markers are far from symmetric."""
