@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Motion
 from mocapskel.model.kinematics import segment_origins
-from mocapskel.solvers.model.calibrate import pick_frames, refine_skeleton
+from mocapskel.solvers.model.calibrate import refine_skeleton
+from mocapskel.solvers.model.refinement import pick_frames
 from mocapskel.solvers.ik.track import track
 from mocapskel.solvers import joint_moves, rest_pose
 from mocapskel.solvers.model import refinement

@@ -9,7 +9,7 @@ import pytest
 
 from mocapskel import evaluate, pipeline
 from mocapskel.artifacts import Segments, Topology
-from mocapskel.solvers.model.calibrate import pick_frames
+from mocapskel.solvers.model.refinement import pick_frames
 from mocapskel.solvers.model.joint_map import (effective_frames, like_bone_pairs, noise_sigma, prior_sigmas,
                                         residual_correlation)
 from mocapskel.stages import rigid

@@ -63,3 +63,69 @@ def test_only_joints_between_segments_with_poses_of_their_own_are_soft():
         assert set(got) == {c for c in range(len(skel.names)) if skel.parent[c] >= 0
                             and min(n[c], n[skel.parent[c]]) >= 3}, (counts, got)
         assert len(got) == len(soft) and set(got.values()) <= {2.0}
+
+
+def test_the_reduced_matrix_with_soft_joints_eliminates_their_offsets_with_the_poses():
+    """The uncertainty's curvature over the constant unknowns with soft joints: each frame's offsets eliminated with
+    its pose, their prior in the frame's block, against a dense finite-difference Jacobian:
+    ``Jg^T Jg - Jg^T Jp (Jp^T Jp + W)^-1 Jp^T Jg``, W the offsets' prior weights (the reference frame's rotations
+    held, the root's origin fixed)."""
+    from mocapskel.solvers.model import uncertainty as unc_mod
+
+    take = hang_chain((3, 3, 3), 60, rng=np.random.default_rng(4), link_length=300.0, noise=0.3)
+    skel = pipeline.run_until(take.markers, "rigid", {}).artifact
+    pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
+    keep = np.arange(0, pts.shape[0], 25)[:4]
+    soft = [c for c in range(len(skel.parent)) if skel.parent[c] >= 0]
+    pr = _Problem(skel.parent, skel.marker_segment, pts[keep], soft, [0.05, 0.2][: len(soft)])
+    S, F, nf, ng = pr.S, len(keep), pr.nf, pr.ng
+    R, l, d = skel.pose_rot[keep], skel.marker_local, pr.offsets(skel.origin)
+    p, _ = pr.soft_offsets(skel.pose_root[keep], R, d, l)
+    lin = np.r_[0:3, 3 + 3 * S : nf]
+    ref, fix_g = 1, unc_mod._gauge_fixed(pr)
+
+    def residual(x):
+        pose, g = x[: F * nf].reshape(F, nf), x[F * nf :]
+        d1, l1 = _step(pr, d, l, g)
+        return pr.residual(p + pose[:, lin], _exp(pose[:, 3 : 3 + 3 * S].reshape(F, S, 3)) @ R, d1, l1).ravel()
+
+    n = F * nf + ng
+    J = np.zeros((residual(np.zeros(n)).size, n))
+    for i in range(n):
+        e = np.zeros(n)
+        e[i] = 1e-6
+        J[:, i] = (residual(e) - residual(-e)) / 2e-6
+    held = np.zeros(F * nf, dtype=bool)
+    held[ref * nf + 3 : ref * nf + 3 + 3 * S] = True
+    W = np.tile(np.r_[np.zeros(3 + 3 * S), pr.ws], F)[~held]
+    Jp, Jg = J[:, : F * nf][:, ~held], J[:, F * nf :][:, ~fix_g]
+    dense = Jg.T @ Jg - Jg.T @ Jp @ np.linalg.solve(Jp.T @ Jp + np.diag(W), Jp.T @ Jg)
+    ours = unc_mod.reduced_normal_matrix(pr, p, R, d, l, ref, fix_g)[np.ix_(~fix_g, ~fix_g)]
+    assert np.allclose(ours, dense, rtol=1e-5, atol=1e-6 * np.abs(dense).max())
+    # the offsets the fit would have: with the frame's pose held, the markers' residual plus the prior is least
+    r0 = residual(np.zeros(n))
+    for f in range(F):
+        Jo = J[:, f * nf + np.arange(3 + 3 * S, nf)]
+        step = np.linalg.solve(Jo.T @ Jo + np.diag(pr.ws), -(Jo.T @ r0 + pr.ws * p[f, 3:]))
+        assert np.abs(step).max() < 1e-6 * max(np.abs(p[f, 3:]).max(), 1.0), step  # already there
+
+
+def test_soft_offsets_give_back_the_fits_marker_residual():
+    """The offsets solved frame by frame at the fit's poses (:meth:`_Problem.soft_offsets`) reproduce the marker
+    residual the fit ended with (its offsets are not kept)."""
+    from mocapskel.solvers.model.calibrate import refine_skeleton
+
+    take = hang_chain((3, 3, 3), 120, rng=np.random.default_rng(6), link_length=300.0, noise=0.5)
+    skel = pipeline.run_until(take.markers, "rigid", {}).artifact
+    pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
+    ref = int(np.searchsorted(skel.pose_frames, skel.rest_frame))
+    soft = {c: 0.02 for c in range(len(skel.parent)) if skel.parent[c] >= 0}
+    res = refine_skeleton(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts, skel.pose_rot,
+                          skel.pose_root, ref_frame=ref, iterations=40, soft=soft)
+    pr = _Problem(skel.parent, skel.marker_segment, pts, sorted(soft), [soft[c] for c in sorted(soft)])
+    p, eff = pr.soft_offsets(res.root_pos, res.rot, pr.offsets(res.origin), res.marker_local)
+    rms = np.sqrt(pr.cost(p, res.rot, pr.offsets(res.origin), res.marker_local) / pr.w.sum())
+    rigid_rms = np.sqrt(pr.cost(np.hstack([p[:, :3], 0 * p[:, 3:]]), res.rot, pr.offsets(res.origin),
+                                res.marker_local) / pr.w.sum())
+    assert abs(rms - res.rms[1]) < 1e-3 * res.rms[1], (rms, res.rms)
+    assert rms < rigid_rms and 0 < eff < 3 * len(soft) * pts.shape[0]

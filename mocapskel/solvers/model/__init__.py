@@ -4,7 +4,7 @@ Markers are points fixed on rigid segments, the segments meet at fixed joint cen
 is left is noise at the take's own level (DESIGN, "One model, not rules").
 
 - :mod:`mocapskel.solvers.model.calibrate`: the whole-skeleton bundle adjustment, every pose and
-  every constant offset fitted together (``refine_skeleton``, ``pick_frames``);
+  every constant offset fitted together (``refine_skeleton``);
 - :mod:`mocapskel.solvers.model.joint_map`: its MAP with explicit Gaussian priors where the
   markers do not fix a joint (``map_refine``, ``noise_sigma``), the rigid stage's
   ``joint_model="map"``;
@@ -15,7 +15,7 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
 - :mod:`mocapskel.solvers.model.refinement`: the refinement of the default ``joint_model="rules"``
   path (``refine``): the bundle adjustment free, then held where the tests of
   :mod:`mocapskel.solvers.rules.plausible` say a joint is off the body; it also picks the frames
-  both paths fit (``refinement_frames``).
+  both paths fit (``refinement_frames``, ``pick_frames``).
 
 The rigid stage (:mod:`mocapskel.stages.rigid`) calls them; the joints stage gives the starts
 (:mod:`mocapskel.solvers.joints`), and every frame is posed by :mod:`mocapskel.solvers.ik`.

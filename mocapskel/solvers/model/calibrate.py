@@ -38,7 +38,7 @@ import numpy as np
 from ...model.tree import depth_first_order
 from ..parallel import Shares, WorkerLost
 
-__all__ = ["CalibrationResult", "refine_skeleton", "pick_frames"]
+__all__ = ["CalibrationResult", "refine_skeleton"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,31 +63,6 @@ class CalibrationResult:
     objective: float = float("nan")
 
 
-def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
-    """``n`` frames spread over the take, each the best-seen of its stretch.
-
-    visible : (F, M) bool. The take is cut into ``n`` equal stretches and the
-    frame seeing the most markers is taken from each (the first on ties);
-    ``must`` is added if given. Sorted, unique.
-    """
-    F = visible.shape[0]
-    n = max(1, min(n, F))
-    edges = np.linspace(0, F, n + 1).round().astype(int)
-    count = visible.sum(1)
-    starts = edges[:-1]
-    # argmax within each stretch: reduceat gives the maxima, then the first frame reaching it
-    mx = np.maximum.reduceat(count, starts)
-    stretch = np.repeat(np.arange(n), np.diff(edges))
-    hit = count == mx[stretch]
-    first = np.full(n, -1)
-    idx = np.flatnonzero(hit)
-    first[stretch[idx][::-1]] = idx[::-1]
-    out = first[first >= 0]
-    if must is not None:
-        out = np.append(out, int(must))
-    return np.unique(out)
-
-
 def _hat(v: np.ndarray) -> np.ndarray:
     K = np.zeros(v.shape + (3,))
     K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -107,7 +82,7 @@ def _exp(rv: np.ndarray) -> np.ndarray:
 
 
 class _Problem:
-    def __init__(self, parent, seg, observed, soft=()):
+    def __init__(self, parent, seg, observed, soft=(), soft_weights=None):
         S = len(parent)
         self.S = S
         self.parent = np.asarray(parent)
@@ -126,6 +101,9 @@ class _Problem:
         # from its fixed place in the parent's frame (3 unknowns after the rotations)
         self.soft = [int(c) for c in soft]
         self.nf = 3 + 3 * S + 3 * len(self.soft)
+        # their prior's weights (per unknown; see refine_skeleton's ``soft``) and rows in a frame's pose
+        self.ws = np.repeat(np.zeros(len(self.soft)) if soft_weights is None else np.asarray(soft_weights, float), 3)
+        self.se = 3 + 3 * S + np.arange(self.ws.size)
         kids = [s for s in range(S) if self.parent[s] >= 0]
         self.gi = {c: 3 * i for i, c in enumerate(kids)}
         base = 3 * len(kids)
@@ -253,6 +231,20 @@ class _Problem:
         d[self.kids] = np.asarray(origin)[self.kids] - np.asarray(origin)[self.kid_parent]
         return d
 
+    def soft_offsets(self, root, R, d, l) -> tuple[np.ndarray, float]:
+        """(p (F, 3 + 3 ns): ``root`` (F, 3) and each frame's soft joints' offsets that minimise its marker residual
+        plus their prior at poses ``R``, the offsets' effective number of unknowns over the frames): the markers are
+        linear in the offsets, so one solve per frame."""
+        p = np.hstack([np.asarray(root, dtype=float), np.zeros((root.shape[0], self.ws.size))])
+        if not self.soft:
+            return p, 0.0
+        JfT, _, _, r = self.jacobian(slice(None), p, R, d, l)
+        Jo = JfT[:, self.se]
+        N = Jo @ Jo.transpose(0, 2, 1)
+        H = N + np.eye(self.ws.size) * self.ws
+        p[:, 3:] = -np.linalg.solve(H, Jo @ r.transpose(0, 2, 1).reshape(r.shape[0], -1, 1))[..., 0]
+        return p, float(np.trace(np.linalg.solve(H, N), axis1=1, axis2=2).sum())
+
     def fk(self, p, R, d, l):
         """p (F, 3 + 3 ns): the root's origin, then each soft joint's offset (see ``soft``)."""
         F = p.shape[0]
@@ -362,6 +354,9 @@ class _Problem:
         bg = np.empty(ng)
         bg[:nd] = np.einsum("fcja,fcj->ca", Rp, np.einsum("fmj,mc->fcj", r, self.sub)).reshape(-1)
         bg[nd:] = np.einsum("fmji,fmj->mi", Rw, r).reshape(-1)
+        if self.soft:  # the soft joints' offsets: their prior
+            Hff[:, self.se, self.se] += self.ws
+            X[:, self.se, ng] += self.ws * p[sl][:, 3:]
         return Hff, X, Hgg, bg
 
 
@@ -430,9 +425,8 @@ def refine_skeleton(
     S = len(parent)
     F = observed.shape[0]
     soft_c = [int(c) for c in sorted(soft or {}) if parent[int(c)] >= 0 and soft[c] > 0]
-    pr = _Problem(parent, np.asarray(marker_segment), observed, soft_c)
-    ws = np.repeat([float(soft[c]) for c in soft_c], 3)  # the soft offsets' prior weights, per unknown
-    se = 3 + 3 * S + np.arange(ws.size)  # their rows in a frame's pose
+    pr = _Problem(parent, np.asarray(marker_segment), observed, soft_c, [float(soft[c]) for c in soft_c])
+    ws = pr.ws
     p = np.hstack([np.asarray(root_pos, dtype=float), np.zeros((F, ws.size))])
     R = np.array(rot, dtype=float)
     d = pr.offsets(origin)
@@ -524,9 +518,6 @@ def refine_skeleton(
         sl = chunks[j]
         if msg[0] == 0:
             Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, *msg[1:])
-            if ws.size:  # the soft joints' offsets: their prior
-                Hff[:, se, se] += ws
-                X[:, se, ng] += ws * msg[1][sl][:, 3:]
             if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
                 i = ref_frame - sl.start
                 rot = slice(3, 3 + 3 * S)

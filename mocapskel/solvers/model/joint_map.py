@@ -279,11 +279,12 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             if hinge_placed and e < len(per) and per[e].get("hinge"):
                 placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
+    soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z else {}
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                           pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
                           anchor=(centre.origin, centre.marker_local), like_bones=ties,
                           hold_along=hold, hold_weights=hold_w, planes=planes,
-                          soft=_soft_joints(start, inflate * sn**2 / soft_sigma**2) if skin_z > SKIN_Z else None)
+                          soft={c: inflate * sn**2 / s**2 for c, s in soft.items()})
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
@@ -291,6 +292,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
                        "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z,
+                       "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,

@@ -10,7 +10,7 @@ import numpy as np
 
 from ...artifacts import Skeleton
 from ...model.measures import visible
-from .calibrate import pick_frames, refine_skeleton
+from .calibrate import refine_skeleton
 from ..joints.hinges import _hinge_axes
 from ..joint_moves import _move_joint, _repose
 from ..ik.motion import _centres_by_edges, solve
@@ -57,6 +57,31 @@ REFINE_STRIDE = 4
 REFINE_FULL_MARKERS = 48
 
 
+def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndarray:
+    """``n`` frames spread over the take, each the best-seen of its stretch.
+
+    visible : (F, M) bool. The take is cut into ``n`` equal stretches and the
+    frame seeing the most markers is taken from each (the first on ties);
+    ``must`` is added if given. Sorted, unique.
+    """
+    F = visible.shape[0]
+    n = max(1, min(n, F))
+    edges = np.linspace(0, F, n + 1).round().astype(int)
+    count = visible.sum(1)
+    starts = edges[:-1]
+    # argmax within each stretch: reduceat gives the maxima, then the first frame reaching it
+    mx = np.maximum.reduceat(count, starts)
+    stretch = np.repeat(np.arange(n), np.diff(edges))
+    hit = count == mx[stretch]
+    first = np.full(n, -1)
+    idx = np.flatnonzero(hit)
+    first[stretch[idx][::-1]] = idx[::-1]
+    out = first[first >= 0]
+    if must is not None:
+        out = np.append(out, int(must))
+    return np.unique(out)
+
+
 def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None, n_markers: int | None = None) -> int:
     """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
     fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); likewise as (48 / M)^2 above
@@ -79,7 +104,7 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
 
 
 def refinement_frames(skel: Skeleton, frames: int) -> np.ndarray:
-    """The frames a refinement of ``skel`` fits (:func:`~mocapskel.solvers.model.calibrate.pick_frames`, as many as
+    """The frames a refinement of ``skel`` fits (:func:`pick_frames`, as many as
     :func:`refine_frame_count` allows for ``frames``), its rest frame among them."""
     pts = skel.joints.topology.segments.markers.points
     return pick_frames(visible(pts), refine_frame_count(frames, len(skel.names), pts.shape[0],

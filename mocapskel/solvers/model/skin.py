@@ -55,11 +55,12 @@ class SkinMotion:
 
 
 def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
-                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray) -> SkinMotion:
+                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray, soft: tuple = ()) -> SkinMotion:
     """The residual's part that the joint angles explain, from the take alone (see :class:`SkinMotion`).
 
     parent, marker_segment, origin, marker_local : a skeleton (origins and marker offsets in the rest axes).
-    observed : (F, M, 3) markers on the frames posed by ``rot`` (F, S, 3, 3) and ``root_pos`` (F, 3).
+    observed : (F, M, 3) markers on the frames posed by ``rot`` (F, S, 3, 3) and ``root_pos`` (F, 3), or (F, 3 + 3 ns)
+        with the offsets of ``soft`` joints (child segments) after it.
 
     Every marker's residual, in its segment's axes, is regressed on that segment's joint angles (the rotation
     vectors to its parent and children, centred) and their products; the explained variance less what as
@@ -69,7 +70,7 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
     parent = np.asarray(parent)
     marker_segment = np.asarray(marker_segment)
     S = len(parent)
-    pr = _Problem(parent, marker_segment, observed)
+    pr = _Problem(parent, marker_segment, observed, soft)
     _, _, x = pr.fk(root_pos, rot, pr.offsets(origin), marker_local)
     res = observed[:, pr.used] - x
     total = explained = z_ex = z_var = 0.0

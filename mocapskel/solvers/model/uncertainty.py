@@ -24,19 +24,14 @@ precision, so that the clipping does not depend on the gauge). This is done alon
 prior touches (three per joint), where it can matter. A direction is then credited only with what
 the data show beyond the noise.
 
-Gauge: the cost does not change when a segment's local frame turns (its poses turning back), nor
-when the root's origin moves within the root. The reference frame's rotations are held (as the
-refinement holds them) and the root's origin fixed by one of its joints; neither changes the
-quantity reported, which does not depend on the gauge: each joint's position relative to the
-best-fit frame of its child segment's markers (origin at their centroid, turned with them; to first
-order, the markers' offsets less their mean translation and their least-squares rotation about the
-centroid). A child of one or two markers makes no such frame (two have no turn about the line through
-them, and the joint's place about that line turns with the segment's twist, a convention): its joint is
-measured against its parent's markers when those make a frame, else against the child's markers and its
-own children's joints (a shank of two markers and its ankle) when those do. Where none does, against the
-child's: a turn two markers do not define is the segment's own at the rest frame; a child of one marker:
-the segment's turn at the rest frame, and the origin at the marker. Directions are in the lab's axes at the
-rest frame.
+Gauge: the reference frame's rotations are held (as the refinement holds them) and the root's origin
+fixed by one of its joints; the quantity reported does not depend on it: each joint's position relative to
+the best-fit frame of its child segment's markers (origin at their centroid, turned with them). A child of
+one or two markers makes no such frame (two have no turn about their line: the joint's place about it is a
+convention): its parent's markers serve when they make one, else the child's markers and its own children's
+joints; else the child's, at the rest frame's turn (one marker: origin at it). Directions: the lab's axes at
+the rest frame. Soft joints (the model path's, ``soft``): each frame's offsets are eliminated with its pose,
+their Gaussian prior in the frame's block.
 
 The residuals' own spread: the model's covariance takes the noise as independent and the model as
 right. Where the residuals say otherwise (a marker sliding over its segment, a joint whose centre moves,
@@ -49,19 +44,14 @@ model holds it is about zero). Scores taken where a rule moved a joint off where
 to more than their spread: that also widens its region. Like the skin's part below, it is no part of the
 model's information: the prior's share, and whether the prior sets a joint, come from the model alone.
 
-The prior: an isotropic Gaussian on that position, centred where the fit put it, of standard
-deviation ``prior_scale`` times the child segment's size (the largest distance between two of its
-markers and joints at rest). It is stated in millimetres, the data's precision in units of the
-take's own noise: on a take with more noise the data say less and the prior weighs more, as it
-should. The posterior precision is their sum; per joint come its standard deviations along the
-principal directions of the posterior covariance, and the prior's share of the precision along
-each (prior precision over posterior precision, ``sd^2 / prior_sd^2``: 0 the data decide, 1 the
-prior). A joint is set by the prior along a direction where that share exceeds ``SET_BY_PRIOR``.
+The prior: an isotropic Gaussian on that position, centred where the fit put it, of sd ``prior_scale`` times
+the child segment's size (the largest distance between two of its markers and joints at rest), in mm, the
+data's precision in units of the take's own noise (more noise: the prior weighs more). Per joint: its sds
+along the principal directions of the posterior covariance, and the prior's share of the precision along
+each (``sd^2 / prior_sd^2``: 0 the data decide, 1 the prior); set by the prior where it exceeds ``SET_BY_PRIOR``.
 
-What motion would fix it: a joint the markers cannot place along ``u`` turned (nearly) only about
-``u``, like a hinge about its axis; a turn about any axis across ``u`` places it. The axis given is
-the one across both ``u`` and the child's bone (the direction from the joint to the child's
-markers), the turn a segment shows best.
+What motion would fix it: a joint the markers cannot place along ``u`` turned (nearly) only about ``u``
+(a hinge about its axis); a turn about the axis across both ``u`` and the child's bone places it.
 """
 from __future__ import annotations
 
@@ -110,20 +100,19 @@ class JointUncertainty:
 
     kids : (K,) child segment of each joint.
     cov : (K, 3, 3) posterior covariance (mm^2) of the joint relative to the markers of ``frame``, lab axes at rest.
-    spread : (K, 3, 3) what the residuals' own spread adds to it (the sandwich's excess, see the module
-        docstring; positive semi-definite, not in ``cov``, ``sd`` or ``prior_share``: no part of the model's
-        information, so no part of what the prior sets).
+    spread : (K, 3, 3) what the residuals' own spread adds to it (the sandwich's excess: not in ``cov``, ``sd`` or
+        ``prior_share``, no part of the model's information).
     sd : (K, 3) standard deviations (mm) along the principal directions of ``cov``, largest first.
     directions : (K, 3, 3) the principal directions (rows, unit), in the order of ``sd``.
     prior_share : (K, 3) the prior's share of the posterior precision along each direction.
     prior_sd : (K,) the prior's standard deviation (mm).
-    frame : (K,) the segment whose markers the joint is measured against (:func:`_frame_segment`): its
-        child, or its parent where only the parent's markers make a frame.
+    frame : (K,) the segment whose markers the joint is measured against (:func:`_frame_segment`).
     frame_markers : (K,) points of that segment that define its frame (3 means three or more, not on a line).
     turned_about : (K, 3) the main axis of the joint's relative rotations (lab axes at rest), NaN if unknown.
     lacks_axis : (K, 3) the axis a turn about which would place the joint along ``directions[:, 0]``.
     noise_sd : the take's noise (mm per coordinate) from the fit's residual; dof its degrees of freedom.
-    frames : frames of the fit.
+    frames : frames of the fit. soft, pose_p : the soft joints (child segments) and (F, 3 + 3 ns) each frame's root
+        origin and their offsets (:meth:`~mocapskel.solvers.model.calibrate._Problem.soft_offsets`).
     """
 
     kids: np.ndarray
@@ -140,6 +129,8 @@ class JointUncertainty:
     noise_sd: float
     dof: int
     frames: int
+    soft: tuple = ()
+    pose_p: np.ndarray | None = None
 
     @property
     def set_by_prior(self) -> np.ndarray:
@@ -257,16 +248,15 @@ def _gauge_fixed(pr: _Problem) -> np.ndarray:
     return fix_g
 
 
-def _hold_reference(Hff: np.ndarray, X: np.ndarray | None, sl: slice, ref_frame: int) -> None:
-    """The reference frame's rotations held (the gauge of the segments' frames), in place."""
+def _hold_reference(Hff: np.ndarray, X: np.ndarray | None, sl: slice, ref_frame: int, S: int) -> None:
+    """The reference frame's ``S`` rotations held (the gauge of the segments' frames), in place."""
     if sl.start <= ref_frame < sl.stop:
-        i = ref_frame - sl.start
-        nf = Hff.shape[1]
-        Hff[i, 3:, :] = 0.0
-        Hff[i, :, 3:] = 0.0
-        Hff[i, 3:, 3:] = np.eye(nf - 3)
+        i, rot = ref_frame - sl.start, slice(3, 3 + 3 * S)
+        Hff[i, rot, :] = 0.0
+        Hff[i, :, rot] = 0.0
+        Hff[i, rot, rot] = np.eye(3 * S)
         if X is not None:
-            X[i, 3:] = 0.0
+            X[i, rot] = 0.0
 
 
 def _damped(Hff: np.ndarray) -> np.ndarray:
@@ -297,7 +287,7 @@ def reduced_normal_matrix(pr: _Problem, p, R, d, l, ref_frame: int, fix_g: np.nd
 
     def part(sl: slice) -> np.ndarray:
         Hff, X, Hgg_f, _ = pr.normal_equations(sl, p, R, d, l)
-        _hold_reference(Hff, X, sl, ref_frame)
+        _hold_reference(Hff, X, sl, ref_frame, pr.S)
         X[:, :, :ng][:, :, fix_g] = 0.0
         YtY, _ = pr.eliminate(_damped(Hff), X)
         return Hgg_f - YtY[:ng, :ng]
@@ -330,13 +320,16 @@ def _g_columns(pr: _Problem, R: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.
 
 def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) -> list[tuple]:
     """Per chunk of frames: (its slice, the pose Jacobian transposed JfT (n, nf, 3U) with the reference
-    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T``, the
+    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T`` (and the soft joints'
+    prior), the
     markers' weights (n, U), the residual (n, 3U, 1) in JfT's row order: coordinate, then marker)."""
     def one(sl: slice) -> tuple:
         JfT, _, _, r = pr.jacobian(sl, p, R, d, l)  # its rows zero where a marker is unseen
         if sl.start <= ref_frame < sl.stop:
-            JfT[ref_frame - sl.start, 3:] = 0.0
-        Li = np.linalg.inv(np.linalg.cholesky(_damped(JfT @ JfT.transpose(0, 2, 1))))
+            JfT[ref_frame - sl.start, 3 : 3 + 3 * pr.S] = 0.0
+        D = JfT @ JfT.transpose(0, 2, 1)
+        D[:, pr.se, pr.se] += pr.ws
+        Li = np.linalg.inv(np.linalg.cholesky(_damped(D)))
         return sl, JfT, Li, pr.w[sl][:, pr.used], r.transpose(0, 2, 1).reshape(r.shape[0], -1, 1)
 
     return run_blocks(one, _chunks(p.shape[0], chunk))
@@ -364,7 +357,7 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
         for _ in range(pairs):
             e = rng.normal(0.0, sigma, (n, JfT.shape[2], 1))
             step = (Li.transpose(0, 2, 1) @ (Li @ (JfT @ e)))[..., 0]  # D^-1 Jf^T e
-            turn = _exp(step[:, 3:].reshape(n, S, 3))
+            turn = _exp(step[:, 3 : 3 + 3 * S].reshape(n, S, 3))
             # G is linear in the rotations: G(R+) - G(R-) = G(R+ - R-)
             G1 = _g_columns(pr, 0.5 * (turn - np.swapaxes(turn, -1, -2)) @ R[sl], w, V)
             Y = Li @ (JfT @ G1)
@@ -439,6 +432,8 @@ def joint_uncertainty(
     chunk: int = 128,
     seed: int = 0,
     frames_per_independent: float = 1.0,
+    soft: dict[int, float] | None = None,
+    soft_noise: float = 1.0,
 ) -> JointUncertainty | None:
     """Every joint's posterior uncertainty at a fitted skeleton (see the module docstring).
 
@@ -452,22 +447,27 @@ def joint_uncertainty(
         (``n / n_eff``, :func:`~mocapskel.solvers.model.joint_map.effective_frames`): the data's precision is
         divided by it (residuals that stay alike from frame to frame, as skin motion makes them, say less
         than as many independent ones).
+    soft : {child: sigma (mm)} the fit's soft joints (their offsets solved again, weighed against ``soft_noise``).
 
     None when the residual leaves no degree of freedom to measure the noise.
     """
     parent = np.asarray(parent)
     S = len(parent)
-    pr = _Problem(parent, np.asarray(marker_segment), observed)
+    sc = sorted(int(c) for c, v in (soft or {}).items() if parent[int(c)] >= 0 and v > 0)
+    pr = _Problem(parent, np.asarray(marker_segment), observed, sc, [soft_noise**2 / soft[c] ** 2 for c in sc])
     if not pr.kids or pr.used.size == 0:
         return None
     d = pr.offsets(origin)
     l = np.array(marker_local, dtype=float)
-    p, R = np.asarray(root_pos, dtype=float), np.asarray(rot, dtype=float)
+    R = np.asarray(rot, dtype=float)
+    p, soft_dof = pr.soft_offsets(root_pos, R, d, l)
     n_obs, dof = _dof(pr)
+    dof -= soft_dof
     cost = pr.cost(p, R, d, l)
     if dof <= 0 or not np.isfinite(cost):
         return None
     s2 = max(cost / dof, 1e-12)
+    pr.ws = np.repeat([s2 / soft[c] ** 2 for c in sc], 3)  # the offsets' prior against the noise measured here
     fix_g = _gauge_fixed(pr)
     H0 = reduced_normal_matrix(pr, p, R, d, l, ref_frame, fix_g, chunk)
     kids = np.array(pr.kids, dtype=int)
@@ -528,7 +528,7 @@ def joint_uncertainty(
     return JointUncertainty(
         kids=kids, cov=cov, spread=spread, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
         frame=frame, frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
-        noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]),
+        noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]), soft=tuple(sc), pose_p=p,
     )
 
 
@@ -594,18 +594,22 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
         return None
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
     rot, root = skel.pose_rot, skel.pose_root
-    if refined is not None and not (np.array_equal(skel.origin, refined.origin)
-                                    and np.array_equal(skel.marker_local, refined.marker_local, equal_nan=True)):
+    moved = refined is not None and not (np.array_equal(skel.origin, refined.origin)
+                                         and np.array_equal(skel.marker_local, refined.marker_local, equal_nan=True))
+    if moved:
         res = _repose(skel, skel.origin, skel.marker_local, pts)
         rot, root = res.rot, res.root_pos
     ref = int(np.searchsorted(skel.pose_frames, skel.rest_frame))
     if not (ref < skel.pose_frames.size and skel.pose_frames[ref] == skel.rest_frame):
         return None
+    fit = skel.info.get("refined") or {}
+    soft = {} if moved else {skel.names.index(n): v for n, v in (fit.get("soft_sigma_mm") or {}).items()}
     u = joint_uncertainty(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts, rot, root,
-                          ref_frame=ref, frames_per_independent=frames_per_independent(skel))
+                          ref_frame=ref, frames_per_independent=frames_per_independent(skel), soft=soft,
+                          soft_noise=float(fit.get("soft_noise_mm", 1.0)))
     if u is None:
         return None
-    skin = skin_motion(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, pts, rot, root)
+    skin = skin_motion(skel.parent, skel.marker_segment, skel.origin, skel.marker_local, pts, rot, u.pose_p, u.soft)
     # at most the joint's largest sd of the model: skin cannot leave it surer, and a joint that barely turns
     # (a reach's still leg) shows too little of its skin's curve to say more
     skin_sd = np.zeros(len(skel.parent))
