@@ -36,7 +36,7 @@ def test_gtsam_reaches_our_map(solved):
     case, ours, gm, graph, sol = solved
     parent = np.asarray(case.args[0])
     pr = gm.pr
-    J_ours = pr.fk(ours.root_pos, ours.rot, fg._offsets(pr, parent, ours.origin), ours.marker_local)[0][:, pr.kids]
+    J_ours = pr.fk(ours.root_pos, ours.rot, pr.offsets(ours.origin), ours.marker_local)[0][:, pr.kids]
     J_gt = pr.fk(*gm.read(sol))[0][:, pr.kids]
     assert np.abs(J_ours - J_gt).max() < 1e-6 * LINK
     # the same objective: gtsam's error is half our cost (unit noise, sigma 1 / sqrt(weight) priors)
