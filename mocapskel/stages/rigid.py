@@ -123,7 +123,8 @@ class Params:
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
     that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move);
     ``"deepened+leaf"``, also a hinge at the end of a limb at its end segment's markers' middle along its
-    axis where the markers do not see that move (the geometry of :func:`centre_leaf_hinges`)."""
+    axis where the markers do not see that move (the geometry of :func:`centre_leaf_hinges`), and the joint of a
+    one-marker leaf at its parent's end (:func:`~mocapskel.solvers.model.joint_map.one_marker_ends`)."""
     data_weight: str = "frames"
     """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'

@@ -36,7 +36,8 @@ Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:
 differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
 Hinges whose place along their axis the mean knows (optional, ``hinge_scale`` > 0: a marker over the axis,
-the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``): a second Gaussian
+the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``, which also puts a
+one-marker leaf's joint at its parent's end, :func:`one_marker_ends`): a second Gaussian
 along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
 the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
 
@@ -68,7 +69,8 @@ from ..rules.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from .skin import skin_motion
-from ..rest_pose import _bone_line, _rest_markers
+from ..joint_moves import _move_joint
+from ..rest_pose import _bone_line, _rest_groups, _rest_markers
 from ..rigid_shape import procrustes_shape
 from ..joints.hinges import _hinge_direction, _relative_rotations
 from ..rotations import segments_seen
@@ -215,6 +217,28 @@ def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.nd
     return hold, w
 
 
+def one_marker_ends(skel: Skeleton) -> Skeleton:
+    """``skel`` with the joint of every leaf segment of one marker at the mean of its parent's markers that lie nearer
+    that marker than their own centroid does (the parent's end: a forearm's two wrist markers, a foot's two
+    metatarsal markers), each segment's markers kept where they are; the prior's mean there.
+
+    One marker turning with its segment places the joint only where the segment turns enough to draw a sphere (a
+    hand through a range of motion); where it hardly turns (a walk's hand) the joints stage's sphere fit is anywhere
+    along the forearm (a generated walk's wrists 52 and 62 mm off), and a joint the data leave free should stay by its
+    markers: at the parent's end, on which marker sets put markers to mark the joint."""
+    pos, seg, count = _rest_groups(skel)
+    origin, local = skel.origin.copy(), skel.marker_local.copy()
+    for c in range(len(skel.names)):
+        p = int(skel.parent[c])
+        if p < 0 or count[c] != 1 or (skel.parent == c).any() or count[p] < 2:
+            continue
+        m, own = pos[seg == c][0], pos[seg == p]
+        end = own[np.linalg.norm(own - m, axis=1) < np.linalg.norm(own.mean(0) - m)]
+        if len(end):
+            origin, local = _move_joint(origin, local, skel.marker_segment, c, end.mean(0) - origin[c])
+    return replace(skel, origin=origin, marker_local=local)
+
+
 def _soft_joints(skel: Skeleton, weight: float) -> dict[int, float]:
     """{child segment: ``weight``} for the joints that may be soft: both segments carry three markers or more, so
     that each has a pose of its own (a segment of one or two markers is posed through its joints)."""
@@ -247,7 +271,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     if mean in ("deepened", "deepened+leaf"):
         centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
     if mean == "deepened+leaf":
-        centre = centre_leaf_hinges(centre, hinge_ratio)
+        centre = one_marker_ends(centre_leaf_hinges(centre, hinge_ratio))
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
