@@ -218,9 +218,9 @@ def _hinge_priors(start: Skeleton, centre: Skeleton, rot: np.ndarray, pts: np.nd
 
 
 def one_marker_ends(skel: Skeleton) -> Skeleton:
-    """``skel`` with the joint of every leaf segment of one marker at the mean of its parent's markers that lie nearer
-    that marker than their own centroid does (the parent's end: a forearm's two wrist markers, a foot's two
-    metatarsal markers), each segment's markers kept where they are; the prior's mean there.
+    """``skel`` with the joint of every leaf segment of one marker at the mean of its parent's markers on that marker's
+    side of their own centroid (along the line from the centroid to it: the parent's end, a forearm's two wrist
+    markers, a foot's metatarsal markers), each segment's markers kept where they are; the prior's mean there.
 
     One marker turning with its segment places the joint only where the segment turns enough to draw a sphere (a
     hand through a range of motion); where it hardly turns (a walk's hand) the joints stage's sphere fit is anywhere
@@ -233,7 +233,7 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
         if p < 0 or count[c] != 1 or (skel.parent == c).any() or count[p] < 2:
             continue
         m, own = pos[seg == c][0], pos[seg == p]
-        end = own[np.linalg.norm(own - m, axis=1) < np.linalg.norm(own.mean(0) - m)]
+        end = own[(own - own.mean(0)) @ (m - own.mean(0)) > 0]
         if len(end):
             origin, local = _move_joint(origin, local, skel.marker_segment, c, end.mean(0) - origin[c])
     return replace(skel, origin=origin, marker_local=local)
