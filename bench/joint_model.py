@@ -66,8 +66,9 @@ ABLATIONS = {
     "no-moves": {"mirror_pairs": False, "joint_depth": False, "leaf_centre": False, "hold_hinges": False,
                  "far": 1e9, "outside": 1e9, "slide": 1e9},
 }
-#: the variants measured (``--variants``; "rules" and the ablations are the rules path)
-VARIANTS = ["rules", "map"]
+#: the variants measured (``--variants``; "rules" and the ablations are the rules path; "model" the model path with
+#: ``rigid.Params``' own defaults, whatever they are now)
+VARIANTS = ["rules", "model"]
 
 
 def _rigid(mode: str, scale: float):
@@ -75,6 +76,8 @@ def _rigid(mode: str, scale: float):
 
     if mode in ABLATIONS:
         return rigid.Params(joint_model="rules", **ABLATIONS[mode])
+    if mode == "model":
+        return rigid.Params(joint_model="map", prior_scale=scale)
     w, mean, bone, *hinge = WEIGHTS[mode]
     return rigid.Params(joint_model="map", prior_scale=scale, data_weight=w, prior_mean=mean, bone_sigma=bone,
                         hinge_scale=hinge[0] if hinge else 0.0, hinge_placed=hinge[1] if len(hinge) > 1 else True,
@@ -211,7 +214,9 @@ def summary(raw: dict, scales: list[float]) -> str:
 def compact(raw: dict, scale: float) -> str:
     """Rules against the model at one prior scale: per case and grouping, the tuning and checking halves'
     mean over seeds of the joint rms (mean over joints, and the worst joint's)."""
-    m = f"map {scale:g}"
+    # the model path as it is ("model"), or a raw file of the variant measured before it had that name
+    name = "model" if any(f"model {scale:g}" in t for v in raw.values() for t in v.values()) else "map"
+    m = f"{name} {scale:g}"
     rows = []
     for case in dict.fromkeys(k.rsplit(" ", 1)[0] for k in raw):
         for tree in ("true", "auto"):
@@ -225,7 +230,7 @@ def compact(raw: dict, scale: float) -> str:
                             f"{np.mean([o['worst'] for o in ok]):.0f}" if ok else ""]
             rows.append(row)
     head = ["case", "grouping and tree"] + [f"{h}: {mode} {k}" for h in ("tuning 1-3", "checking 4-6")
-                                           for mode in ("rules", "map") for k in ("mean (mm)", "worst joint (mm)")]
+                                           for mode in ("rules", name) for k in ("mean (mm)", "worst joint (mm)")]
     return table(head, rows)
 
 
@@ -240,7 +245,7 @@ def main() -> None:
     ap.add_argument("--real-only", action="store_true", help="the real takes only")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
     ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
-    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=[*ABLATIONS, *WEIGHTS],
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=[*ABLATIONS, *WEIGHTS, "model"],
                     help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
                          "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
                          "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs); "
