@@ -518,13 +518,7 @@ def refine_skeleton(
         sl = chunks[j]
         if msg[0] == 0:
             Hff, X, Hgg_f, bg_f = pr.normal_equations(sl, *msg[1:])
-            if sl.start <= ref_frame < sl.stop:  # gauge: the reference frame's rotations stay
-                i = ref_frame - sl.start
-                rot = slice(3, 3 + 3 * S)
-                Hff[i, rot, :] = 0.0
-                Hff[i, :, rot] = 0.0
-                Hff[i, rot, rot] = np.eye(3 * S)
-                X[i, rot] = 0.0
+            _hold_reference(Hff, X, sl, ref_frame, S)
             X[:, :, :ng][:, :, fix_g] = 0.0
             store[j] = [Hff, X, None]
             return Hgg_f, bg_f
@@ -645,6 +639,18 @@ def refine_skeleton(
         origin=new_origin, marker_local=l, rot=R, root_pos=p,
         rms=(float(np.sqrt(c0 / W)), float(np.sqrt(cost / W))), n_iter=it, objective=objective,
     )
+
+
+def _hold_reference(Hff: np.ndarray, X: np.ndarray | None, sl: slice, ref_frame: int, S: int) -> None:
+    """The reference frame's ``S`` rotations held in the pose blocks of frames ``sl`` (the gauge of the segments'
+    frames), in place; a soft joint's offsets there stay free."""
+    if sl.start <= ref_frame < sl.stop:
+        i, rot = ref_frame - sl.start, slice(3, 3 + 3 * S)
+        Hff[i, rot, :] = 0.0
+        Hff[i, :, rot] = 0.0
+        Hff[i, rot, rot] = np.eye(3 * S)
+        if X is not None:
+            X[i, rot] = 0.0
 
 
 def _pack(pr: _Problem, d: np.ndarray, l: np.ndarray) -> np.ndarray:

@@ -80,7 +80,7 @@ from ..rotations import segments_seen
 NOISE_FLOOR_MM = 0.1
 
 #: The skin regression's z (standard deviations of chance) above which a take shows skin motion: a test at about
-#: the 0.1 % level. Measured: generated takes without skin motion -10 to -8, with it 58-88.
+#: the 0.1 % level. Measured: generated takes without skin motion -11 to -7, with it 11-88.
 SKIN_Z = 3.0
 
 
@@ -239,11 +239,11 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local)
 
 
-def _soft_joints(skel: Skeleton, weight: float) -> dict[int, float]:
-    """{child segment: ``weight``} for the joints that may be soft: both segments carry three markers or more, so
+def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
+    """{child segment: ``sigma``} for the joints that may be soft: both segments carry three markers or more, so
     that each has a pose of its own (a segment of one or two markers is posed through its joints)."""
     n = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(skel.names))
-    return {c: weight for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
+    return {c: sigma for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
 
 
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,

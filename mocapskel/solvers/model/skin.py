@@ -59,8 +59,8 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
     """The residual's part that the joint angles explain, from the take alone (see :class:`SkinMotion`).
 
     parent, marker_segment, origin, marker_local : a skeleton (origins and marker offsets in the rest axes).
-    observed : (F, M, 3) markers on the frames posed by ``rot`` (F, S, 3, 3) and ``root_pos`` (F, 3), or (F, 3 + 3 ns)
-        with the offsets of ``soft`` joints (child segments) after it.
+    observed : (F, M, 3) markers on the frames posed by ``rot`` (F, S, 3, 3) and ``root_pos``: (F, 3), or (F, 3 + 3 ns)
+        with each frame's offsets of the ``soft`` joints (child segments) after the root's origin.
 
     Every marker's residual, in its segment's axes, is regressed on that segment's joint angles (the rotation
     vectors to its parent and children, centred) and their products; the explained variance less what as
@@ -111,10 +111,11 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             b = X.T @ y
             beta = np.linalg.lstsq(X.T @ X, b, rcond=None)[0]
             ss = float((y * y).sum())
-            ex = float((b * beta).sum()) - ss * (q - 1) / (n - 1)
+            raw = float((b * beta).sum())
+            ex = raw - ss * (q - 1) / (n - 1)
             ne = _effective(y - X @ beta)
             if ne > q + 1:
-                z_ex += float((b * beta).sum()) - ss * (q - 1) / (ne - 1)
+                z_ex += raw - ss * (q - 1) / (ne - 1)
                 z_var += float(((y * y).sum(0) ** 2).sum()) * 2.0 * (q - 1) * (ne - q) / ((ne - 1) ** 2 * (ne + 1))
             seg_ss += ss
             seg_ex += ex

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import _exp, _hat, _Problem
+from .calibrate import _exp, _hat, _hold_reference, _Problem
 from .skin import skin_motion
 from ..joint_moves import _repose
 from ..parallel import run_blocks
@@ -248,17 +248,6 @@ def _gauge_fixed(pr: _Problem) -> np.ndarray:
     return fix_g
 
 
-def _hold_reference(Hff: np.ndarray, X: np.ndarray | None, sl: slice, ref_frame: int, S: int) -> None:
-    """The reference frame's ``S`` rotations held (the gauge of the segments' frames), in place."""
-    if sl.start <= ref_frame < sl.stop:
-        i, rot = ref_frame - sl.start, slice(3, 3 + 3 * S)
-        Hff[i, rot, :] = 0.0
-        Hff[i, :, rot] = 0.0
-        Hff[i, rot, rot] = np.eye(3 * S)
-        if X is not None:
-            X[i, rot] = 0.0
-
-
 def _damped(Hff: np.ndarray) -> np.ndarray:
     """Pose blocks with a relative ridge of 1e-10 on their diagonal, and 1 where it is zero: poses the
     markers do not fix (a segment unseen in a frame) meet no residual, so nothing of theirs reaches the
@@ -320,9 +309,8 @@ def _g_columns(pr: _Problem, R: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.
 
 def _pose_factors(pr: _Problem, p, R, d, l, ref_frame: int, chunk: int = 128) -> list[tuple]:
     """Per chunk of frames: (its slice, the pose Jacobian transposed JfT (n, nf, 3U) with the reference
-    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T`` (and the soft joints'
-    prior), the
-    markers' weights (n, U), the residual (n, 3U, 1) in JfT's row order: coordinate, then marker)."""
+    frame's rotations held, ``Li`` (n, nf, nf) the inverse Cholesky factor of ``JfT JfT^T`` plus the soft joints'
+    prior, the markers' weights (n, U), the residual (n, 3U, 1) in JfT's row order: coordinate, then marker)."""
     def one(sl: slice) -> tuple:
         JfT, _, _, r = pr.jacobian(sl, p, R, d, l)  # its rows zero where a marker is unseen
         if sl.start <= ref_frame < sl.stop:
