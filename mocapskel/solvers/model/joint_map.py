@@ -80,7 +80,7 @@ from ..rotations import segments_seen
 NOISE_FLOOR_MM = 0.1
 
 #: The skin regression's z (standard deviations of chance) above which a take shows skin motion: a test at about
-#: the 0.1 % level. Measured: generated takes without skin motion -11 to -7, with it 11-88.
+#: the 0.1 % level. Measured: generated takes without skin motion -11 to -7, with it 11-82.
 SKIN_Z = 3.0
 
 
