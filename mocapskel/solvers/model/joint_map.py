@@ -43,9 +43,11 @@ the markers' information is the joint's small turns about the other axes, which 
 
 Soft joints (optional, ``soft_sigma`` > 0, :func:`_soft_joints`): in each frame a joint between two segments of
 three markers or more may sit off its fixed place by a Gaussian offset, a model of marker clusters sliding on the
-skin. Only where the take shows skin motion: the start's residual follows its joint angles (the skin regression's
-``z``, :func:`~mocapskel.solvers.model.skin.skin_motion`, above ``SKIN_Z``); a take whose residual is noise alone
-keeps its joints rigid.
+skin. Only where the take shows skin motion: the residual of the rigid MAP follows its joint angles (the skin
+regression's ``z``, :func:`~mocapskel.solvers.model.skin.skin_motion`, above ``SKIN_Z``), and the soft MAP is then
+run from the start as the rigid one was; a take whose residual is noise alone keeps the rigid MAP. (The start's
+residual is no test: a joint off its place moves the markers by (I - R) c, a function of the joint angles, and a
+rigid-marker walk scored z = 52 there.)
 
 Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
 per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
@@ -80,7 +82,7 @@ from ..rotations import segments_seen
 NOISE_FLOOR_MM = 0.1
 
 #: The skin regression's z (standard deviations of chance) above which a take shows skin motion: a test at about
-#: the 0.1 % level. Measured: generated takes without skin motion -11 to -7, with it 11-82.
+#: the 0.1 % level. Measured at the rigid MAP: generated takes without skin motion -12 to -0.6, with it 34-72.
 SKIN_Z = 3.0
 
 
@@ -291,10 +293,6 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             sm = max(miss, sn)
             planes.append((kids, n, inflate * sn**2 / sm**2))
             tie_sig.append(sm)
-    skin_z = float("nan")
-    if soft_sigma > 0:  # soft joints model skin motion: none where the take shows none
-        skin_z = skin_motion(start.parent, start.marker_segment, start.origin, start.marker_local, pts[use],
-                             pose.rot, pose.root_pos).z
     hold, hold_w = {}, {}
     if hinge_scale > 0:
         placed = {start.names.index(n) for k in ("deepened", "leaf_centred") for n in centre.info.get(k, {})}
@@ -303,17 +301,26 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             if hinge_placed and e < len(per) and per[e].get("hinge"):
                 placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
-    soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z else {}
+    kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
+              like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes)
     res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                          pose.rot, pose.root_pos, ref_frame=ref, iterations=iterations, prior_weights=w,
-                          anchor=(centre.origin, centre.marker_local), like_bones=ties,
-                          hold_along=hold, hold_weights=hold_w, planes=planes,
-                          soft={c: inflate * sn**2 / s**2 for c, s in soft.items()})
+                          pose.rot, pose.root_pos, **kw)
+    before = res.rms[0]
+    skin_z, soft = float("nan"), {}
+    if soft_sigma > 0:
+        # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
+        # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
+        skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
+                             res.root_pos).z
+        soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z else {}
+        if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
+            res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                                  pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
     nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
     info = dict(start.info)
-    info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": res.rms[0],
+    info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": before,
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
                        "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
