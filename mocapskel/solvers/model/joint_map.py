@@ -82,7 +82,8 @@ from ..rotations import segments_seen
 NOISE_FLOOR_MM = 0.1
 
 #: The skin regression's z (standard deviations of chance) above which a take shows skin motion: a test at about
-#: the 0.1 % level. Measured at the rigid MAP: generated takes without skin motion -12 to -0.6, with it 34-72.
+#: the 0.1 % level. Measured at the rigid MAP: generated takes the rigid model describes -12 to -0.6, a rigid-marker
+#: run whose shoulder centres move on the thorax 23, takes with skin motion 34-72.
 SKIN_Z = 3.0
 
 
