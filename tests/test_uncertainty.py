@@ -260,6 +260,18 @@ def test_true_joints_fall_inside_the_95_percent_region_at_the_models_map():
     assert np.mean(np.array(d2) <= CHI2_3_95) >= 0.8
 
 
+def test_the_median_error_of_exact_regions_is_the_chi_distributions():
+    """The bench reads the ratio of the 95 % radius to the median error against what exact regions would
+    give: for an isotropic Gaussian the median of a chi with 3 degrees of freedom (1.538 sd), for one long
+    axis the median of |N(0, 1)| (0.674 sd)."""
+    from bench.uncertainty import calibrated_median_error
+
+    iso = np.array([[0.0, 0.0, 0.0, 2.0, 2.0, 2.0]] * 50)
+    line = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0]] * 50)
+    assert calibrated_median_error(iso) == pytest.approx(2.0 * 1.5382, rel=0.02)
+    assert calibrated_median_error(line) == pytest.approx(3.0 * 0.6745, rel=0.03)
+
+
 def test_the_joint_is_measured_in_the_frame_of_its_childs_markers():
     """The first-order map to a joint's position relative to its child's markers: a turn of the segment's
     frame (every marker offset turned about the joint) leaves it, a shift of the markers moves it the

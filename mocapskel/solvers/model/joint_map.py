@@ -252,7 +252,7 @@ def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
-               soft_sigma: float = 0.0, mirror: bool = False) -> Skeleton:
+               soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -262,7 +262,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
     length at the start: one more factor each. With ``mirror``, like limbs' first joints (and a child on the middle
     line) lie in their parent's plane of symmetry (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`), their mean's
-    distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it."""
+    distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it.
+    With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
+    as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames, rigid joints."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -304,11 +306,18 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
               like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes)
-    res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                          pose.rot, pose.root_pos, **kw)
+    if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
+        use = refinement_frames(start, more)
+        pose = solve(fitted, pts[use], _centres_by_edges(start, centres)[use])
+        kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
+        res = refine_skeleton(start.parent, fitted.origin, start.marker_segment, fitted.marker_local, pts[use],
+                              pose.rot, pose.root_pos, **kw)
+    else:
+        res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                              pose.rot, pose.root_pos, **kw)
     before = res.rms[0]
-    skin_z, soft = float("nan"), {}
-    if soft_sigma > 0:
+    skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
+    if soft_sigma > 0 and fitted is None:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
         # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
         skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
