@@ -64,21 +64,24 @@ def test_map_joints_on_the_active_range_of_motion():
     assert max(got.joint_rms_each.values()) < 12.0
     assert mot.skeleton.info["refined"]["skin_z"] < 3.0
     rigid_joints, _ = _score(j, rigid.Params(joint_model="map", soft_sigma=0.0), take.truth)
-    assert rigid_joints.joint_rms_each == got.joint_rms_each
+    kept, _ = _score(j, rigid.Params(joint_model="map", gross_errors=False), take.truth)
+    assert rigid_joints.joint_rms_each == kept.joint_rms_each
 
 
 def test_a_walk_with_rigid_markers_keeps_rigid_joints():
     """A walk of the 48-marker human with rigid markers and 1 mm white noise (true groups and tree): the start's joints
     are tens of millimetres off, and its residual follows the joint angles through them (z measured 32 there); the
-    rigid MAP's does not (z measured -0.8), so the joints stay rigid: 5.0 mm rms, worst 11.5 (measured), where soft
-    joints, switched on by the start's residual, ended 38.5 mm (worst 89) and the rules 42.8."""
+    rigid MAP's does not (z measured -0.7), so the joints stay rigid: 5.1 mm rms, worst 12.1 (measured; one gross
+    residual left out; with it 5.0 and 11.5, the rigid MAP's own), where soft joints, switched on by the start's
+    residual, ended 38.5 mm (worst 89) and the rules 42.8."""
     take = make(Recipe(kind="human", seed=1, frames=600, motion="walk", noise_mm=1.0))
     j = _joints(take)
     got, mot = _score(j, rigid.Params(joint_model="map"), take.truth)
     assert mot.skeleton.info["refined"]["skin_z"] < 3.0 and not mot.skeleton.info["refined"]["soft_sigma_mm"]
     assert got.joint_rms_mm < 10.0 and max(got.joint_rms_each.values()) < 25.0, got.joint_rms_each
     rigid_joints, _ = _score(j, rigid.Params(joint_model="map", soft_sigma=0.0), take.truth)
-    assert rigid_joints.joint_rms_each == got.joint_rms_each
+    kept, _ = _score(j, rigid.Params(joint_model="map", gross_errors=False), take.truth)
+    assert rigid_joints.joint_rms_each == kept.joint_rms_each
 
 
 def test_a_take_the_rigid_model_fits_is_refined_on_more_frames():
@@ -101,6 +104,29 @@ def test_a_take_the_rigid_model_fits_is_refined_on_more_frames():
     skin = make(realistic(seed=1, frames=2400, motion="rom"))
     _, mot = _score(_joints(skin), rigid.Params(joint_model="map"), skin.truth)
     assert mot.skeleton.info["refined"]["skin_z"] > 3.0 and mot.skeleton.info["refined"]["frames"] == 300
+
+
+def test_one_frame_of_gross_errors_does_not_make_the_joints_soft(monkeypatch):
+    """A range of motion with rigid markers and 1 mm noise, four markers 50 mm off in one of the refinement's
+    frames: taken as residuals, they give the skin test z = 4.0 on this seed (the torso's regression on its many
+    joints' angles fits one frame's error), soft joints and 2.95 mm (worst 7.7); left out as gross errors, z = 0.2,
+    rigid joints and 1.29 mm (worst 2.2), as measured (on seed 1 the test is below 3 either way). The rigid fit is then
+    made again without them: kept, they pull the joints to 1.40 mm; the take without the frame's errors gives 1.27."""
+    import mocapskel.solvers.model.skin as skin_mod
+
+    take = make(Recipe(kind="human", seed=2, frames=1200, motion="rom", noise_mm=1.0))
+    pts = take.markers.points.copy()
+    pts[400, [3, 10, 20, 30]] += np.random.default_rng(0).normal(0, 1, (4, 3)) * 50 / np.sqrt(3)
+    j = _joints(replace(take, markers=replace(take.markers, points=pts)))
+    got, mot = _score(j, rigid.Params(joint_model="map"), take.truth)
+    fit = mot.skeleton.info["refined"]
+    assert fit["skin_z"] < 3.0 and not fit["soft_sigma_mm"]
+    assert got.joint_rms_mm < 1.5 and max(got.joint_rms_each.values()) < 3.0, got.joint_rms_each
+    kept, _ = _score(j, rigid.Params(joint_model="map", gross_errors=False), take.truth)
+    assert kept.joint_rms_mm > got.joint_rms_mm + 0.05
+    monkeypatch.setattr(skin_mod, "gross_out", lambda r: r)
+    naive, mot = _score(j, rigid.Params(joint_model="map"), take.truth)
+    assert mot.skeleton.info["refined"]["skin_z"] > 3.0 and naive.joint_rms_mm > 2.0 * got.joint_rms_mm
 
 
 def test_prior_sigmas_scale_with_the_segments_reach():

@@ -120,6 +120,12 @@ class Params:
     information (the generated 48-marker range of motion, 3600 frames: 2.44 / 2.65 mm -> see BENCHMARKS). Where the
     residual follows the joint angles, more frames only weigh that misfit more (the realistic cmu41 takes and the
     real references lost with them), and the fit keeps ``refine_frames``. At most ``refine_frames``: off."""
+    gross_errors: bool = True
+    """With ``joint_model="map"``: where the fit's joints stay rigid (its residual is noise), residuals beyond what that
+    noise gives once in a million (a marker swapped or jumping in a frame,
+    :func:`~mocapskel.solvers.model.skin.gross_mask`) are left out and the fit made again, each costing the posterior
+    as if at that bound (a truncated quadratic). Where the residual follows the joint angles its large values are
+    skin, and are kept."""
     prior_scale: float = 0.1
     """With ``joint_model="map"``: the prior's standard deviation on a joint, relative to each of its
     two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
@@ -379,7 +385,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
                          bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                         soft_sigma=params.soft_sigma, mirror=params.mirror_prior)
+                         soft_sigma=params.soft_sigma, mirror=params.mirror_prior, gross=params.gross_errors)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
@@ -394,7 +400,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         more = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
                           scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
                           bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                          mirror=params.mirror_prior, fitted=best, more=params.rigid_frames)
+                          mirror=params.mirror_prior, fitted=best, more=params.rigid_frames, gross=params.gross_errors)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],

@@ -49,6 +49,11 @@ run from the start as the rigid one was; a take whose residual is noise alone ke
 residual is no test: a joint off its place moves the markers by (I - R) c, a function of the joint angles, and a
 rigid-marker walk scored z = 52 there.)
 
+Gross errors: where the joints stay rigid, the noise model is the residual's: a residual beyond what it gives once in a
+million (:func:`~mocapskel.solvers.model.skin.gross_mask`: a marker swapped or jumping in one frame) is left out and
+the fit made again from where it ended, each such residual costing the posterior its bound (a truncated quadratic).
+The skin test leaves them out too: one frame of them turned a rigid take's z from -8.8 to 21.6.
+
 Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
 per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
 
@@ -64,13 +69,13 @@ import numpy as np
 
 from ...artifacts import Skeleton
 from ...model.tree import like_subtrees, subtree_shape
-from .calibrate import refine_skeleton
+from .calibrate import _Problem, refine_skeleton
 from ..rules.deepen import deepen_joints
 from ..rules.leaf_hinges import centre_leaf_hinges
 from ..rules.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
-from .skin import skin_motion
+from .skin import gross_mask, skin_motion
 from ..joint_moves import _move_joint
 from ..rest_pose import _bone_line, _rest_groups, _rest_markers
 from ..rigid_shape import procrustes_shape
@@ -249,10 +254,26 @@ def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
     return {c: sigma for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
 
 
+def _without_gross(start: Skeleton, res, obs: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """(``obs`` with the markers of its gross residuals at ``res`` (:func:`~mocapskel.solvers.model.skin.gross_mask`)
+    unseen, how many, the squared length beyond which they are): each costs the posterior that much, as if at the
+    bound (a truncated quadratic: a swapped or jumping marker is no draw of the noise)."""
+    pr = _Problem(start.parent, start.marker_segment, obs)
+    _, _, x = pr.fk(res.root_pos, res.rot, pr.offsets(res.origin), res.marker_local)
+    mask, t2 = gross_mask(obs[:, pr.used] - x)
+    if not mask.any():
+        return obs, 0, t2
+    out = obs.copy()
+    f, i = np.nonzero(mask)
+    out[f, pr.used[i]] = np.nan
+    return out, int(mask.sum()), t2
+
+
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
-               soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0) -> Skeleton:
+               soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
+               gross: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -264,7 +285,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     line) lie in their parent's plane of symmetry (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`), their mean's
     distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it.
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
-    as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames, rigid joints."""
+    as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames, rigid joints. With ``gross``,
+    a fit whose joints stay rigid (the skin test passed) is made again without its gross residuals
+    (:func:`_without_gross`)."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -326,13 +349,19 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
             res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                                   pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+    n_gross, t2 = 0, 0.0
+    if gross and not soft and skin_z <= SKIN_Z:  # the residual is the noise: what lies far beyond it is no draw of it
+        obs, n_gross, t2 = _without_gross(start, res, pts[use])
+        if n_gross:  # again without them, from where the fit ended
+            res = refine_skeleton(start.parent, res.origin, start.marker_segment, res.marker_local, obs, res.rot,
+                                  res.root_pos, **kw)
     # -log posterior: the objective over 2 sigma_n^2, plus the priors' normalisers (3 axes each)
-    nlp = (res.objective / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
+    nlp = ((res.objective + n_gross * t2) / (2.0 * inflate * sn**2) + 3.0 * float(np.sum(np.log(sig[np.isfinite(sig)])))
            + float(np.sum(np.log(tie_sig))) + 0.5 * float(sum(np.log(inflate * sn**2 / x) for v in hold_w.values() for x in v if x > 0)))
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": before,
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
-                       "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z,
+                       "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z, "gross_residuals": n_gross,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
                        "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
