@@ -141,7 +141,7 @@ class Params:
     data_weight: str = "frames"
     """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
-    correlation in time allows (:func:`~mocapskel.solvers.model.joint_map.effective_frames`: skin motion
+    correlation in time allows (:func:`~mocapskel.solvers.model.effective.effective_frames`: skin motion
     makes neighbouring frames' residuals alike)."""
     bone_sigma: float = 0.03
     """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction

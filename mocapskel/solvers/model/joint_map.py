@@ -70,6 +70,7 @@ import numpy as np
 from ...artifacts import Skeleton
 from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import _Problem, refine_skeleton
+from .effective import correlation_in_time, effective_frames
 from ..rules.deepen import deepen_joints
 from ..rules.leaf_hinges import centre_leaf_hinges
 from ..rules.mirror import mirror_planes
@@ -124,41 +125,6 @@ def residual_correlation(points: np.ndarray, group: np.ndarray) -> np.ndarray:
         shape, R, t, _ = procrustes_shape(obs)
         backs.append(np.einsum("fji,fpj->fpi", R, obs - t[:, None, :]) - shape)
     return correlation_in_time(backs)
-
-
-def correlation_in_time(backs: list[np.ndarray]) -> np.ndarray:
-    """:func:`residual_correlation`'s rho from the residuals themselves: a list of (F, P, 3) arrays over the
-    same consecutive frames (NaN where unseen), each series' mean taken out."""
-    if not backs:
-        return np.ones(1)
-    F = backs[0].shape[0]
-    n = 1 << int(np.ceil(np.log2(max(2 * F, 2))))
-    num, cnt = np.zeros(F), np.zeros(F)
-    for back in backs:
-        x = back.reshape(F, -1)
-        m = np.isfinite(x)
-        mu = np.where(m, x, 0.0).sum(0) / np.maximum(m.sum(0), 1)
-        x = np.where(m, x - mu, 0.0)
-        X, Mk = np.fft.rfft(x, n, axis=0), np.fft.rfft(m.astype(float), n, axis=0)
-        num += np.fft.irfft(X * X.conj(), n, axis=0)[:F].sum(1)
-        cnt += np.fft.irfft(Mk * Mk.conj(), n, axis=0)[:F].round().sum(1)
-    if cnt[0] <= 0 or num[0] <= 0:
-        return np.ones(1)
-    rho = np.where(cnt > 0, num / np.maximum(cnt, 1), 0.0) / (num[0] / cnt[0])
-    stop = np.flatnonzero(rho <= 0)
-    return rho[: stop[0]] if stop.size else rho
-
-
-def effective_frames(rho: np.ndarray, frames: np.ndarray) -> float:
-    """How many independent frames the frames ``frames`` (indices into the take) are worth when their
-    residuals correlate as ``rho`` (:func:`residual_correlation`): n^2 / sum_ij rho(|t_i - t_j|), the
-    count whose mean has the variance of theirs. n for uncorrelated residuals, 1 for identical ones."""
-    t = np.asarray(frames, dtype=np.int64)
-    if t.size == 0:
-        return 0.0
-    lag = np.abs(t[:, None] - t[None, :])
-    r = np.where(lag < rho.size, rho[np.minimum(lag, rho.size - 1)], 0.0)
-    return float(t.size**2 / r.sum())
 
 
 def prior_sigmas(mean: Skeleton, scale: float) -> np.ndarray:

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..rotations import matrix_to_rotvec
 from .calibrate import _Problem
+from .effective import correlation_in_time, effective_frames
 
 
 #: A residual whose squared length is beyond this many times the noise variance per axis (chi-square with 3 degrees
@@ -143,7 +144,7 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             ss = float((y * y).sum())
             raw = float((b * beta).sum())
             ex = raw - ss * (q - 1) / (n - 1)
-            ne = _effective(y - X @ beta)
+            ne = effective_frames(correlation_in_time([(y - X @ beta)[:, None, :]]), np.arange(n))
             if ne > q + 1:
                 z_ex += raw - ss * (q - 1) / (ne - 1)
                 z_var += float(((y * y).sum(0) ** 2).sum()) * 2.0 * (q - 1) * (ne - q) / ((ne - 1) ** 2 * (ne + 1))
@@ -156,21 +157,3 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             explained += seg_ex
     return SkinMotion(share=explained / total if total > 0 else float("nan"), explained=per_seg, angle_var=angle_var,
                       z=z_ex / np.sqrt(z_var) if z_var > 0 else float("nan"))
-
-
-def _effective(e: np.ndarray) -> float:
-    """The effective number of independent frames of residuals ``e`` (n, k) in time order: n / (1 + 2 sum rho_j),
-    the correlations rho_j summed while positive (Geyer's initial positive sequence)."""
-    n = e.shape[0]
-    e = e - e.mean(0)
-    v = float((e * e).sum())
-    if not v > 0:
-        return float(n)
-    tau = 1.0
-    for j in range(1, n // 2):
-        rho = float((e[j:] * e[:-j]).sum()) / v
-        if rho <= 0:
-            break
-        tau += 2.0 * rho
-    return n / tau
-

@@ -433,7 +433,7 @@ def joint_uncertainty(
     prior_scale : the prior's standard deviation as a multiple of the child segment's size.
     seed : of the noise draws that measure what the noise alone puts into the curvature.
     frames_per_independent : how many of the fit's frames one independent observation is worth
-        (``n / n_eff``, :func:`~mocapskel.solvers.model.joint_map.effective_frames`): the data's precision is
+        (``n / n_eff``, :func:`~mocapskel.solvers.model.effective.effective_frames`): the data's precision is
         divided by it (residuals that stay alike from frame to frame, as skin motion makes them, say less
         than as many independent ones).
     soft : {child: sigma (mm)} the fit's soft joints (their offsets solved again, weighed against ``soft_noise``).
@@ -660,15 +660,15 @@ CORRELATION_FRAMES = 512
 
 def frames_per_independent(skel) -> float:
     """How many of the refinement's frames one independent observation is worth: ``n / n_eff``
-    (:func:`~mocapskel.solvers.model.joint_map.effective_frames`), the residuals' correlation in time
-    (:func:`~mocapskel.solvers.model.joint_map.correlation_in_time`) measured on the middle
+    (:func:`~mocapskel.solvers.model.effective.effective_frames`), the residuals' correlation in time
+    (:func:`~mocapskel.solvers.model.effective.correlation_in_time`) measured on the middle
     ``CORRELATION_FRAMES`` frames of the take: every segment of three or more markers posed on its fitted
     shape in each frame (:func:`~mocapskel.solvers.ik.segment_poses.segment_poses`), its markers' residuals
     taken in its frame. Skin that slides with the joint angles keeps a marker's residual alike from one
     frame to the next; counted as independent, the frames make the data look surer than they are. 1 when
     it cannot be measured."""
     from ..ik.segment_poses import segment_poses
-    from .joint_map import correlation_in_time, effective_frames
+    from .effective import correlation_in_time, effective_frames
 
     pts = skel.joints.topology.segments.markers.points
     F = pts.shape[0]
