@@ -45,7 +45,7 @@ GENERATED: list[tuple[str, dict]] = [
     ("active ROM with 10 jumps", dict(kind="human", seed=3, frames=3600, noise_mm=1.0, soft_tissue_mm=2.0, jumps=10)),
 ]
 
-CHECKS = ("residual", "bone_length", "joint_far", "joint_step", "rotation_flip", "limb_asymmetry", "limb_mirror",
+CHECKS = ("residual", "bone_length", "joint_far", "joint_step", "rotation_flip", "limb_asymmetry", "limb_mirror", "limb_cross",
           "not_converged")
 
 
@@ -138,7 +138,7 @@ def _row(name: str, r: dict) -> list:
 
 
 HEADER = ["take", "result", "segments", "markers kept by clean", "residual", "bone > extent", "joint far", "joint step",
-          "rotation flip", "limb asymmetry", "limb mirror", "not converged", "Euler spikes", "order", "fit (s)"]
+          "rotation flip", "limb asymmetry", "limb mirror", "limb cross", "not converged", "Euler spikes", "order", "fit (s)"]
 
 
 def main() -> None:
@@ -157,6 +157,7 @@ def main() -> None:
           "fastest marker plus 20 mm; rotation flip: a joint turning > 90° in one frame while its markers hardly "
           "move; limb asymmetry: in a skeleton recognised as a person, the same left and right bone more than 20 % apart; "
           "limb mirror: in one, a midline joint more than a fifth of the hips' (shoulders') spacing off their mid-plane; "
+          "limb cross: like limbs' first joints in the opposite order to their own markers; "
           "residual: IK rms above 3 × the rigid fit's noise + 10 mm. Euler spikes: joint-frames of the written "
           "BVH whose rotation channels step > 10° while the rotation turns < 2°. Markers kept: after clean and merge-ids "
           "(dropped: markers clean left with nothing; jump samples: samples clean turned into gaps as jumps).\n")

@@ -49,6 +49,13 @@ the result against the take itself, with no template:
                     the walk hardly moves, put in the neck; a segment holding
                     the other side's markers). Mirrored errors (both shoulders
                     too medial) keep the symmetry and are not seen;
+- ``limb_cross``    two like limbs (two children of one segment whose subtrees have the same
+                    shape and marker counts: two legs, two arms, in any tree) whose
+                    first joints lie in the opposite order to their own markers
+                    (rest pose): the right hip left of the left hip while the right
+                    thigh's markers lie right of the left thigh's. No body crosses
+                    its limbs at their roots; a joint slid along the axis the take
+                    hardly turns about (a walk's hip along its flexion axis) does;
 - ``not_converged`` joints whose centre fit stopped before converging.
 
 Every failing check is one :class:`Finding`: which check, the joint or segment
@@ -237,6 +244,7 @@ def run_checks(motion: Motion, points: np.ndarray, limits: Limits = Limits(), *,
     naming = recognise(sk, motion)  # a person's, or why not (see mocapskel.model.naming)
     out.extend(_limb_asymmetry(motion, limits.asymmetry, naming))
     out.extend(_limb_mirror(motion, limits.mirror, naming))
+    out.extend(_limb_cross(motion))
 
     for s, note in (joint_notes or {}).items():
         jn = _joint_name(names, parent, s)
@@ -337,6 +345,33 @@ def _limb_asymmetry(motion: Motion, tol: float, naming) -> list[Finding]:
             out.append(Finding("limb_asymmetry", pair,
                                f"the two {what} of this otherwise person-shaped tree ({sk.names[ca[0]]}..., {sk.names[cb[0]]}...) "
                                f"{how} — so it is not named as a person"))
+    return out
+
+
+def _limb_cross(motion: Motion) -> list[Finding]:
+    """Like limbs (:func:`~mocapskel.model.tree.like_subtrees`) whose first joints, along the line between their
+    first segments' marker centroids, lie in the opposite order to those centroids (rest pose)."""
+    from .model.tree import like_subtrees
+
+    sk = motion.skeleton
+    parent = np.asarray(sk.parent)
+    seg = np.asarray(sk.marker_segment)
+    count = np.bincount(seg[seg >= 0], minlength=len(parent))
+    out = []
+    for _, a, b in like_subtrees(parent, count):
+        pos = sk.origin[seg] + sk.marker_local
+        ca, cb = (np.nanmean(pos[seg == x], axis=0) for x in (a, b))
+        d = ca - cb
+        if not (np.isfinite(d).all() and np.linalg.norm(d) > 0):
+            continue
+        u = d / np.linalg.norm(d)
+        along = float((sk.origin[a] - sk.origin[b]) @ u)
+        if along < 0:
+            ja, jb = _joint_name(sk.names, parent, a), _joint_name(sk.names, parent, b)
+            out.append(Finding("limb_cross", f"{sk.names[a]}/{sk.names[b]}",
+                               f"like limbs cross at their roots: joints {ja} and {jb} lie {-along:.0f} mm in the opposite "
+                               f"order to their segments' markers ({np.linalg.norm(d):.0f} mm apart); no body has that — "
+                               "one of the two joints slid along a direction the take hardly moves"))
     return out
 
 

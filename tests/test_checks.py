@@ -309,6 +309,26 @@ def test_a_shoulder_put_in_the_neck_warns_that_the_shoulders_are_not_mirrored(hu
     assert far_r < 0.35 * far_l, msg
 
 
+def test_hips_in_the_wrong_order_warn_that_the_limbs_cross(human_fit) -> None:
+    """A generated gait walk's right hip (two-marker thighs, the model path) slid 300 mm along its flexion axis,
+    past the left one; nothing said (a lower-body set has no midline joint for ``limb_mirror``). The right hip
+    moved past the left by a third of their spacing: said, naming the two legs; moved 0.9 of the way to the left
+    one (still on its own side): not said; the untouched fit has none."""
+    from mocapskel.model.naming import recognise
+
+    _, res = human_fit
+    motion = res.motion
+    sk = motion.skeleton
+    pts = markers_of(motion).points
+    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
+    left, right = role["LeftUpLeg"], role["RightUpLeg"]
+    assert not _names(checks.run_checks(motion, pts), "limb_cross")
+    w = sk.origin[left] - sk.origin[right]
+    said = checks.run_checks(_moved(motion, right, 1.33 * w), pts)
+    assert _names(said, "limb_cross") == {f"{sk.names[a]}/{sk.names[b]}" for a, b in [sorted((left, right))]}, said
+    assert not _names(checks.run_checks(_moved(motion, right, 0.9 * w), pts), "limb_cross")
+
+
 def test_a_lumbar_joint_off_the_hips_midline_warns(human_fit) -> None:
     """A real CMU walk's (07_01) lumbar joint came out 91 mm to one side of its hips' mid-plane (a third of their
     spacing). The spine's joint moved sideways by 0.3 of the hips' spacing: said, naming the hips and the
