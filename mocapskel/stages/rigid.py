@@ -115,11 +115,12 @@ class Params:
     ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
     rigid_frames: int = 1800
     """With ``joint_model="map"``: where the kept start's MAP has rigid joints (its residual does not follow the joint
-    angles: the markers ride on rigid bodies and what is left is noise), it is refined again on up to this many frames
-    (``refine_frames``' caps for short takes and large skeletons still apply): with a model that fits, every frame adds
-    information (the generated 48-marker range of motion, 3600 frames: 2.44 / 2.65 mm -> see BENCHMARKS). Where the
-    residual follows the joint angles, more frames only weigh that misfit more (the realistic cmu41 takes and the
-    real references lost with them), and the fit keeps ``refine_frames``. At most ``refine_frames``: off."""
+    angles: the markers ride on rigid bodies and what is left is noise), it is refined again on up to this many frames,
+    every frame of a short take (the caps for large skeletons still apply): with a model that fits, every frame adds
+    information (generated walks with rigid markers, 1200 frames: 4.0 / 4.9 -> 2.5 / 3.1 mm; BENCHMARKS, "More frames
+    where the rigid model fits"). Where the residual follows the joint angles, more frames only weigh that misfit more
+    (the realistic cmu41 takes and the real references lost with them), and the fit keeps ``refine_frames``. At most
+    ``refine_frames``: off."""
     gross_errors: bool = True
     """With ``joint_model="map"``: where the fit's joints stay rigid (its residual is noise), residuals beyond what that
     noise gives once in a million (a marker swapped or jumping in a frame,

@@ -82,7 +82,8 @@ def pick_frames(visible: np.ndarray, n: int, must: int | None = None) -> np.ndar
     return np.unique(out)
 
 
-def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None, n_markers: int | None = None) -> int:
+def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = None, n_markers: int | None = None,
+                       stride: int = REFINE_STRIDE) -> int:
     """Frames for the refinement of a skeleton of ``n_segments``: ``frames`` up to 15 segments, then
     fewer as (15 / S)^2, at least 100 (or ``frames`` if that is less); likewise as (48 / M)^2 above
     48 markers; and at most a quarter of a take of ``take_frames`` (at least 100).
@@ -94,7 +95,7 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
     15 segments and 48 markers. Each frame then holds more markers to fit.
     """
     if take_frames is not None:
-        frames = min(frames, max(100, take_frames // REFINE_STRIDE))
+        frames = min(frames, max(100, take_frames // stride))
     out = frames
     if n_segments > REFINE_FULL_SEGMENTS:
         out = min(out, max(100, int(frames * (REFINE_FULL_SEGMENTS / n_segments) ** 2)))
@@ -103,12 +104,12 @@ def refine_frame_count(frames: int, n_segments: int, take_frames: int | None = N
     return min(out, frames)
 
 
-def refinement_frames(skel: Skeleton, frames: int) -> np.ndarray:
+def refinement_frames(skel: Skeleton, frames: int, stride: int = REFINE_STRIDE) -> np.ndarray:
     """The frames a refinement of ``skel`` fits (:func:`pick_frames`, as many as
-    :func:`refine_frame_count` allows for ``frames``), its rest frame among them."""
+    :func:`refine_frame_count` allows for ``frames`` and ``stride``), its rest frame among them."""
     pts = skel.joints.topology.segments.markers.points
     return pick_frames(visible(pts), refine_frame_count(frames, len(skel.names), pts.shape[0],
-                                                        int((skel.marker_segment >= 0).sum())), must=skel.rest_frame)
+                                                        int((skel.marker_segment >= 0).sum()), stride), must=skel.rest_frame)
 
 
 def refine(skel: Skeleton, params: Params, centres: np.ndarray | None = None, partial: Skeleton | None = None,
