@@ -72,7 +72,7 @@ import numpy as np
 from .artifacts import Motion
 from .model.kinematics import segment_origins
 from .model.measures import frames_text, marker_extent
-from .model.tree import like_limb_pairs, unlike_bones
+from .model.tree import like_limb_pairs, like_subtrees, unlike_bones
 from .solvers.bvh_pose import _transpose_blocks
 
 __all__ = ["Finding", "Limits", "run_checks"]
@@ -351,15 +351,13 @@ def _limb_asymmetry(motion: Motion, tol: float, naming) -> list[Finding]:
 def _limb_cross(motion: Motion) -> list[Finding]:
     """Like limbs (:func:`~mocapskel.model.tree.like_subtrees`) whose first joints, along the line between their
     first segments' marker centroids, lie in the opposite order to those centroids (rest pose)."""
-    from .model.tree import like_subtrees
-
     sk = motion.skeleton
     parent = np.asarray(sk.parent)
     seg = np.asarray(sk.marker_segment)
     count = np.bincount(seg[seg >= 0], minlength=len(parent))
+    pos = sk.origin[seg] + sk.marker_local
     out = []
     for _, a, b in like_subtrees(parent, count):
-        pos = sk.origin[seg] + sk.marker_local
         ca, cb = (np.nanmean(pos[seg == x], axis=0) for x in (a, b))
         d = ca - cb
         if not (np.isfinite(d).all() and np.linalg.norm(d) > 0):

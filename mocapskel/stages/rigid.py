@@ -381,12 +381,14 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
 
     rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
 
+    model = dict(frames=params.refine_frames, iterations=params.refine_iterations, noise=noise, scale=params.prior_scale,
+                 mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho, bone_sigma=params.bone_sigma,
+                 hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
+                 gross=params.gross_errors)
+
     def one(i: int):
         c, st = starts[i]
-        out = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
-                         scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                         bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                         soft_sigma=params.soft_sigma, mirror=params.mirror_prior, gross=params.gross_errors)
+        out = map_refine(st, c, soft_sigma=params.soft_sigma, **model)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
     outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
@@ -398,10 +400,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     z = best.info["refined"]["skin_z"]  # NaN where the skin test was not made (soft_sigma 0)
     if np.isfinite(z) and z <= SKIN_Z and params.rigid_frames > params.refine_frames:
         c, st = starts[win]
-        more = map_refine(st, c, frames=params.refine_frames, iterations=params.refine_iterations, noise=noise,
-                          scale=params.prior_scale, mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho,
-                          bone_sigma=params.bone_sigma, hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed,
-                          mirror=params.mirror_prior, fitted=best, more=params.rigid_frames, gross=params.gross_errors)
+        more = map_refine(st, c, fitted=best, more=params.rigid_frames, **model)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],

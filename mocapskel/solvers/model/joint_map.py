@@ -252,9 +252,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it.
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
-    rigid joints. With ``gross``,
-    a fit whose joints stay rigid (the skin test passed) is made again without its gross residuals
-    (:func:`_without_gross`)."""
+    rigid joints. With ``gross``, a fit whose joints stay rigid (the skin test passed) is made again without its gross
+    residuals (:func:`_without_gross`)."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -296,15 +295,14 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
               like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes)
+    base = start
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
         use = refinement_frames(start, more, stride=1)  # noise alone: every frame of a short take adds to the data
-        pose = solve(fitted, pts[use], _centres_by_edges(start, centres)[use])
+        pose = solve(fitted, pts[use], c[use])
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
-        res = refine_skeleton(start.parent, fitted.origin, start.marker_segment, fitted.marker_local, pts[use],
-                              pose.rot, pose.root_pos, **kw)
-    else:
-        res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                              pose.rot, pose.root_pos, **kw)
+        base = fitted
+    res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local, pts[use],
+                          pose.rot, pose.root_pos, **kw)
     before = res.rms[0]
     skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
     if soft_sigma > 0 and fitted is None:
