@@ -308,10 +308,12 @@ def test_the_model_holds_a_knee_along_its_axis_where_its_prior_knows_the_place(r
     (the deepening's geometry), and along the axis the markers' information is the knee's small turns
     about the other axes, which the skin motion makes too: with one prior for every joint (0.1 of the
     segment's size) the data pull both knees 30-35 mm along the axis; with a second prior along the axis
-    on the hinges whose place the prior knows (``hinge_scale``), they stay near it."""
+    on the hinges whose place the prior knows (``hinge_scale``), they stay near it. (Without the limbs' line factor,
+    which alone holds them to 19-21 mm here.)"""
     joints, knees = rom_cmu
-    free = knees(rigid.run(joints, rigid.Params(joint_model="map", hinge_scale=0.0)))
-    held = knees(rigid.run(joints, rigid.Params(joint_model="map")))  # hinge_scale 0.01
+    free = knees(rigid.run(joints, rigid.Params(joint_model="map", hinge_scale=0.0, line_sigma=0.0)))
+    held = knees(rigid.run(joints, rigid.Params(joint_model="map", line_sigma=0.0)))  # hinge_scale 0.01
+    assert max(knees(rigid.run(joints, rigid.Params(joint_model="map")))) < 15.0  # with both
     assert min(free) > 25.0, free
     assert max(held) < 15.0, held
 
@@ -790,6 +792,33 @@ def test_refinement_with_a_lost_worker_process_gives_the_same_result(exact_two_m
     np.testing.assert_array_equal(again.origin, alone.origin)
     np.testing.assert_array_equal(again.rot, alone.rot)
     assert again.n_iter == alone.n_iter == 5
+
+
+def test_a_line_factor_puts_a_middle_joint_in_line_with_its_neighbours_along_the_axis(exact_two_marker):
+    """``refine_skeleton(lines=...)``: a heavy factor puts a middle joint (a knee) where, along the axis u, the line
+    from its parent's joint to its child's joint passes at the fraction t (here 0.2, far from the exact knee's), at the
+    cost of the marker fit; a factor of weight 0 leaves the exact skeleton as it is."""
+    take, exact = exact_two_marker
+    pts = take.markers.points
+    use = pick_frames(np.isfinite(pts).all(-1), 120, must=exact.rest_frame)
+    ref = int(np.searchsorted(use, exact.rest_frame))
+    start = motion.solve(exact, pts[use], motion._centres_by_edges(exact, exact.joints.centres)[use])
+    P = exact.parent
+    k = next(int(c) for c in range(len(P)) if P[c] >= 0 and P[P[c]] >= 0 and (P == c).sum() == 1 and (P == P[c]).sum() == 1)
+    j = int(np.flatnonzero(P == k)[0])
+    t = 0.2
+
+    def off_line(origin, u):
+        return float(u @ (origin[k] - (1 - t) * origin[P[k]] - t * origin[j]))
+
+    u = next(v / np.linalg.norm(v) for v in (np.array([0.2, 1.0, 0.1]), np.array([1.0, -0.2, 0.3]))
+             if abs(off_line(exact.origin, v / np.linalg.norm(v))) > 10.0)
+    before = off_line(exact.origin, u)
+    for w, close in ((1e6, lambda x: abs(x) < 0.05), (0.0, lambda x: abs(x - before) < 0.05)):
+        res = refine_skeleton(exact.parent, exact.origin, exact.marker_segment, exact.marker_local, pts[use],
+                              start.rot, start.root_pos, ref_frame=ref, iterations=60, lines=[(k, j, u, t, w)])
+        assert close(off_line(res.origin, u)), (w, off_line(res.origin, u), before)
+    assert res.rms[1] < 1e-3  # weight 0: the exact fit
 
 
 def test_a_plane_factor_puts_the_mean_of_its_joints_in_the_plane_through_their_parents_markers(exact_two_marker):

@@ -383,6 +383,7 @@ def refine_skeleton(
     hold_weights: dict[int, tuple[float, float]] | None = None,
     soft: dict[int, float] | None = None,
     planes: list[tuple[tuple[int, ...], np.ndarray, float]] | None = None,
+    lines: list[tuple[int, int, np.ndarray, float, float]] | None = None,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -420,6 +421,9 @@ def refine_skeleton(
         fixed places.
     planes : (children, unit normal at rest, weight): the mean of those children's joints lies in the plane through
         their (common) parent's marker centroid, normal to that: weight (whole fit) x its squared distance from it.
+    lines : (k, j, unit axis u at rest, t, weight): joint k (a knee: child segment k) lies, along u, where the line
+        from its parent's joint (the hip) to its child j's joint (the ankle) passes at the fraction t of the way:
+        weight (whole fit) x ((1 - t) u . d_k - t u . d_j)^2, d the joints' offsets from their parents' origins.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -478,6 +482,13 @@ def refine_skeleton(
         for m in ms:
             row[pr.gl[m] : pr.gl[m] + 3] -= n / len(ms)
         trows.append(np.sqrt(w) * row if ms and w > 0 else 0.0 * row)
+    for k, j, u, t, w in lines or ():
+        if parent[k] < 0 or parent[j] != k or not w > 0:
+            continue
+        row = np.zeros(ng)
+        row[pr.gi[k] : pr.gi[k] + 3] = (1.0 - t) * np.asarray(u, dtype=float)
+        row[pr.gi[j] : pr.gi[j] + 3] = -t * np.asarray(u, dtype=float)
+        trows.append(np.sqrt(w) * row)
     T = np.array(trows).reshape(-1, ng)
 
     def total(p_, R_, d_, l_) -> float:

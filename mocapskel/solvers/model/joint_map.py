@@ -57,6 +57,12 @@ The skin test leaves them out too: one frame of them turned a rigid take's z fro
 Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
 per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
 
+A limb's middle joint in line with its neighbours (``line_sigma`` > 0, :func:`limb_lines`): a hinge between two
+joints (a knee between hip and ankle) lies, along its axis, where the line between them passes, within
+``line_sigma`` x their distance: one factor per such joint, linear in the two bones' offsets. A walk turns hip, knee
+and ankle about one axis and leaves each free along it; tied, the three move together, and the joint the prior
+places worst no longer slides on its own.
+
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
 posterior is kept.
@@ -213,6 +219,39 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local)
 
 
+def limb_lines(skel: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: float
+               ) -> list[tuple[int, int, np.ndarray, float, float]]:
+    """[(k, j, u, t, length)]: every joint k whose relative rotations ``rot`` turn about one axis u
+    (:func:`_hinge_direction`, the child's twist about its bone left out; rest axes) between its parent's joint
+    (a hip) and its child segment's one child joint j (an ankle), its parent segment carrying no other limb: t the fraction of the way from the one to the other
+    at which it lies at rest, ``length`` their distance. A limb's middle joint lies along its axis in line with its
+    neighbours, to within how far a limb is from straight (a knee's varus or valgus, an elbow's carrying angle)."""
+    parent = np.asarray(skel.parent)
+    seen = segments_seen(skel.marker_segment, len(skel.names), pts)
+    out = []
+    for k in range(len(parent)):
+        p = int(parent[k])
+        kids = np.flatnonzero(parent == k)
+        if p < 0 or parent[p] < 0 or len(kids) != 1 or (parent == p).sum() != 1:
+            continue  # a limb's middle joint: one segment of the limb above it (not a trunk), one below
+        j = int(kids[0])
+        rel = _relative_rotations(rot, p, k, seen)
+        if rel is None:
+            continue
+        line = _bone_line(skel, k)
+        u = _hinge_direction(rel, hinge_ratio, None if line is None else line[1])
+        if u is None:
+            continue
+        h, a = skel.origin[p], skel.origin[j]
+        v = a - h
+        length = float(np.linalg.norm(v))
+        if not length > 0:
+            continue
+        t = float(np.clip((skel.origin[k] - h) @ v / length**2, 0.0, 1.0))
+        out.append((k, j, u, t, length))
+    return out
+
+
 def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
     """{child segment: ``sigma``} for the joints that may be soft: both segments carry three markers or more, so
     that each has a pose of its own (a segment of one or two markers is posed through its joints)."""
@@ -239,7 +278,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
-               gross: bool = True) -> Skeleton:
+               gross: bool = True, line_sigma: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -285,6 +324,12 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             sm = max(miss, sn)
             planes.append((kids, n, inflate * sn**2 / sm**2))
             tie_sig.append(sm)
+    lines = []
+    if line_sigma > 0:  # a hinge lies along its axis in line with its neighbours, as well as a limb is straight
+        for k, j, u, t, length in limb_lines(start, pose.rot, pts[use], hinge_ratio):
+            sl = max(line_sigma * length, sn)
+            lines.append((k, j, u, t, inflate * sn**2 / sl**2))
+            tie_sig.append(sl)
     hold, hold_w = {}, {}
     if hinge_scale > 0:
         placed = {start.names.index(n) for k in ("deepened", "leaf_centred") for n in centre.info.get(k, {})}
@@ -294,7 +339,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                 placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
-              like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes)
+              like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes, lines=lines)
     base = start
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
         use = refinement_frames(start, more, stride=1)  # noise alone: every frame of a short take adds to the data
