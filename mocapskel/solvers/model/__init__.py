@@ -4,7 +4,8 @@ Markers are points fixed on rigid segments, the segments meet at fixed joint cen
 is left is noise at the take's own level (DESIGN, "One model, not rules").
 
 - :mod:`mocapskel.solvers.model.calibrate`: the whole-skeleton bundle adjustment, every pose and
-  every constant offset fitted together (``refine_skeleton``);
+  every constant offset fitted together (``refine_skeleton``); :mod:`mocapskel.solvers.model.ties` its linear ties
+  between joints (like bones, a plane of symmetry, a limb's middle joint in line);
 - :mod:`mocapskel.solvers.model.joint_map`: its MAP with explicit Gaussian priors where the
   markers do not fix a joint (``map_refine``, ``noise_sigma``), the rigid stage's
   ``joint_model="map"``;

@@ -37,6 +37,7 @@ import numpy as np
 
 from ...model.tree import depth_first_order
 from ..parallel import Shares, WorkerLost
+from .ties import tie_rows
 
 __all__ = ["CalibrationResult", "refine_skeleton"]
 
@@ -464,32 +465,7 @@ def refine_skeleton(
         g0 = _pack(pr, pr.offsets(a_origin), a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
     h0 = Hh @ g0
-    # like bones: rows sqrt(w) (u_a . d_a - u_b . d_b), held to 0
-    trows = []
-    for a, b, w in like_bones or ():
-        if parent[a] < 0 or parent[b] < 0 or not w > 0:
-            continue
-        row = np.zeros(ng)
-        for c, sign in ((a, 1.0), (b, -1.0)):
-            n = float(np.linalg.norm(d[c]))
-            if n > 0:
-                row[pr.gi[c] : pr.gi[c] + 3] = sign * d[c] / n
-        trows.append(np.sqrt(w) * row)
-    for kids, n, w in planes or ():  # rows sqrt(w) n . (mean joint - the parent's marker centroid)
-        row, ms = np.zeros(ng), [int(m) for m in pr.used if marker_segment[m] == parent[kids[0]]]
-        for c in kids:
-            row[pr.gi[c] : pr.gi[c] + 3] += n / len(kids)
-        for m in ms:
-            row[pr.gl[m] : pr.gl[m] + 3] -= n / len(ms)
-        trows.append(np.sqrt(w) * row if ms and w > 0 else 0.0 * row)
-    for k, j, u, t, w in lines or ():
-        if parent[k] < 0 or parent[j] != k or not w > 0:
-            continue
-        row = np.zeros(ng)
-        row[pr.gi[k] : pr.gi[k] + 3] = (1.0 - t) * np.asarray(u, dtype=float)
-        row[pr.gi[j] : pr.gi[j] + 3] = -t * np.asarray(u, dtype=float)
-        trows.append(np.sqrt(w) * row)
-    T = np.array(trows).reshape(-1, ng)
+    T = tie_rows(pr, parent, marker_segment, d, like_bones, planes, lines)
 
     def total(p_, R_, d_, l_) -> float:
         c = pr.cost(p_, R_, d_, l_) + float(np.sum(ws * p_[:, 3:] ** 2))
