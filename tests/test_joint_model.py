@@ -288,10 +288,10 @@ def test_a_one_marker_hand_that_hardly_turns_keeps_its_wrist_at_the_forearms_end
 
 
 def test_limb_lines_are_the_knees_and_elbows_of_a_range_of_motion():
-    """The 48-marker range of motion (true grouping): the limbs' middle joints that turn as hinges are the two knees
-    and the two elbows (the generator's hinges), each between its limb's two other joints (at rest, 0.3-0.7 of the
-    way) with its axis across the limb; no joint of the trunk (a shoulder between the lumbar joint and an elbow
-    turns as one in places) and no leaf's."""
+    """The 48-marker range of motion (true grouping): the limbs' middle joints are the two knees and the two elbows,
+    each between its limb's two other joints (at rest, 0.3-0.7 of the way) with the axis it turns about across the
+    limb; no joint of the trunk (a shoulder lies between the lumbar joint and an elbow, on a trunk that carries other
+    limbs) and no leaf's."""
     from mocapskel.solvers.model.joint_map import limb_lines
 
     take = make(active_rom(1, frames=1200))
@@ -299,7 +299,7 @@ def test_limb_lines_are_the_knees_and_elbows_of_a_range_of_motion():
     pts = take.markers.points
     smap = evaluate.segment_map(sk.marker_segment, take.truth)
     names = take.truth.segment_names
-    lines = limb_lines(sk, sk.pose_rot, pts[sk.pose_frames], 0.6)
+    lines = limb_lines(sk, sk.pose_rot, pts[sk.pose_frames])
     assert sorted(names[smap[k]] for k, *_ in lines) == ["LForearm", "LShank", "RForearm", "RShank"]
     for k, j, u, t, length in lines:
         assert sk.parent[j] == k and 0.3 < t < 0.7, (names[smap[k]], t)

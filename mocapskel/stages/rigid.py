@@ -173,14 +173,14 @@ class Params:
     (:data:`~mocapskel.solvers.model.joint_map.SKIN_Z`): a take whose residual does not follow its joint angles keeps
     rigid joints (the 48-marker range of motion, whose joints are exact: 4.0 -> 2.8 mm)."""
     line_sigma: float = 0.01
-    """With ``joint_model="map"``: a limb's middle joint that turns as a hinge (a knee between hip and ankle, an elbow
-    between shoulder and wrist) lies along its axis in line with its two neighbours
+    """With ``joint_model="map"``: a limb's middle joint (a knee between hip and ankle, an elbow between shoulder and
+    wrist) lies along the axis it turns about in line with its two neighbours
     (:func:`~mocapskel.solvers.model.joint_map.limb_lines`), a Gaussian of this fraction of their distance; 0: no
     such factor. A walk leaves all three free along one axis; tied, they slide together, where their three priors
     hold them, instead of each on its own. 0.01 is a leg's: hip-knee-ankle angles of healthy adults lie within a
-    few degrees of straight, the knee about 1 cm off the line. Both generated halves gain in 11 of 12 rows (gait set,
-    true grouping: 68.0 / 58.7 -> 60.7 / 53.4 mm), the real references too (opensim_test_walking 33.2 -> 30.2 mm)
-    (BENCHMARKS, "A limb's middle joint in line with its neighbours")."""
+    few degrees of straight, the knee about 1 cm off the line. The generated halves gain in 89 of 174 rows and lose
+    in 35 (gait set, true grouping: 68.0 / 58.7 -> 60.1 / 53.1 mm), the real references too (opensim_test_walking
+    33.2 -> 30.2 mm) (BENCHMARKS, "A limb's middle joint in line with its neighbours")."""
     mirror_prior: bool = False
     """With ``joint_model="map"``: like limbs' first joints (two hips on a pelvis) lie in their parent's plane of
     symmetry, their mean's distance from it a Gaussian as wide as the parent's markers are far from symmetric."""

@@ -57,9 +57,10 @@ The skin test leaves them out too: one frame of them turned a rigid take's z fro
 Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
 per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
 
-A limb's middle joint in line with its neighbours (``line_sigma`` > 0, :func:`limb_lines`): a hinge between two
-joints (a knee between hip and ankle) lies, along its axis, where the line between them passes, within
-``line_sigma`` x their distance: one factor per such joint, linear in the two bones' offsets. A walk turns hip, knee
+A limb's middle joint in line with its neighbours (``line_sigma`` > 0, :func:`limb_lines`): a knee between hip and
+ankle, an elbow between shoulder and wrist, lies, along the axis it turns about, where the line between its two
+neighbours passes, within ``line_sigma`` x their distance: one factor per such joint, linear in the two bones'
+offsets. A walk turns hip, knee
 and ankle about one axis and leaves each free along it; tied, the three move together, and the joint the prior
 places worst no longer slides on its own.
 
@@ -219,27 +220,37 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local)
 
 
-def limb_lines(skel: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: float
-               ) -> list[tuple[int, int, np.ndarray, float, float]]:
-    """[(k, j, u, t, length)]: every joint k whose relative rotations ``rot`` turn about one axis u
-    (:func:`_hinge_direction`, the child's twist about its bone left out; rest axes) between its parent's joint
-    (a hip) and its child segment's one child joint j (an ankle), its parent segment carrying no other limb: t the fraction of the way from the one to the other
-    at which it lies at rest, ``length`` their distance. A limb's middle joint lies along its axis in line with its
-    neighbours, to within how far a limb is from straight (a knee's varus or valgus, an elbow's carrying angle)."""
+#: A limb's middle joint lies between its neighbours, at least this fraction of the way from either: a limb's two
+#: long bones are within a factor of 3 of each other's length (thigh and shank, upper arm and forearm: 0.45-0.55 of
+#: the way). A found tree whose "limb" is a head carrying an arm put its shoulder 0.07 of the way from the neck.
+LIMB_MIDDLE = 0.25
+
+
+def limb_lines(skel: Skeleton, rot: np.ndarray, pts: np.ndarray) -> list[tuple[int, int, np.ndarray, float, float]]:
+    """[(k, j, u, t, length)]: every limb's middle joint k (a knee, an elbow: its parent segment, of two markers or
+    more, carries no other limb; its own segment one child, j) that lies ``LIMB_MIDDLE`` or more of the way from
+    either neighbour (its parent's joint, a hip; j's, an ankle); u the axis its relative rotations ``rot`` turn about
+    most (:func:`_hinge_direction`, the child's twist about its bone left out; rest axes), t the fraction of the way
+    from the one neighbour to the other at which it lies at rest, ``length`` their distance. A limb's middle joint
+    lies along its axis in line with its neighbours, to within how far a limb is from straight (a knee's varus or
+    valgus, an elbow's carrying angle). Every start of a take gets the same joints, hinges or not."""
     parent = np.asarray(skel.parent)
     seen = segments_seen(skel.marker_segment, len(skel.names), pts)
     out = []
     for k in range(len(parent)):
         p = int(parent[k])
         kids = np.flatnonzero(parent == k)
-        if p < 0 or parent[p] < 0 or len(kids) != 1 or (parent == p).sum() != 1:
+        if (p < 0 or parent[p] < 0 or len(kids) != 1 or (parent == p).sum() != 1
+                or (skel.marker_segment == p).sum() < 2):
             continue  # a limb's middle joint: one segment of the limb above it (not a trunk), one below
         j = int(kids[0])
         rel = _relative_rotations(rot, p, k, seen)
         if rel is None:
             continue
         line = _bone_line(skel, k)
-        u = _hinge_direction(rel, hinge_ratio, None if line is None else line[1])
+        # the axis it turns about most, hinge or not: the same joints for every start of a take, so that their
+        # scores compare (with the hinges alone, one start of a generated walk had both knees tied, the other one)
+        u = _hinge_direction(rel, 1.0, None if line is None else line[1])
         if u is None:
             continue
         h, a = skel.origin[p], skel.origin[j]
@@ -247,8 +258,9 @@ def limb_lines(skel: Skeleton, rot: np.ndarray, pts: np.ndarray, hinge_ratio: fl
         length = float(np.linalg.norm(v))
         if not length > 0:
             continue
-        t = float(np.clip((skel.origin[k] - h) @ v / length**2, 0.0, 1.0))
-        out.append((k, j, u, t, length))
+        t = float((skel.origin[k] - h) @ v / length**2)
+        if LIMB_MIDDLE <= t <= 1.0 - LIMB_MIDDLE:
+            out.append((k, j, u, t, length))
     return out
 
 
@@ -326,7 +338,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             tie_sig.append(sm)
     lines = []
     if line_sigma > 0:  # a hinge lies along its axis in line with its neighbours, as well as a limb is straight
-        for k, j, u, t, length in limb_lines(start, pose.rot, pts[use], hinge_ratio):
+        for k, j, u, t, length in limb_lines(start, pose.rot, pts[use]):
             sl = max(line_sigma * length, sn)
             lines.append((k, j, u, t, inflate * sn**2 / sl**2))
             tie_sig.append(sl)
