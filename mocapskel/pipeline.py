@@ -183,6 +183,7 @@ def make_params(
     *,
     segments: int | None = None,
     joint_method: str = "auto",
+    joint_model: str = "rules",
     rest_frame: int | None = None,
     up: str = "y",
     units: str = "cm",
@@ -195,7 +196,7 @@ def make_params(
     return {
         "segment": segment.Params(n_segments=segments),
         "joints": joints.Params(method=joint_method),
-        "rigid": rigid.Params(rest_frame=rest_frame),
+        "rigid": rigid.Params(rest_frame=rest_frame, joint_model=joint_model),
         "export": export.Params(up=up, units=units, names=names, rest=rest,
                                 rest_frame="auto" if rest_frame is None else rest_frame),
     }

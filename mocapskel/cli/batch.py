@@ -65,7 +65,7 @@ def _progress_printer(show: bool):
 @read_options
 @cache_options
 @common
-def batch_cmd(inputs, outdir, jobs, scheduler, force, n_subjects, segments, joint_method, rest_frame, up, units,
+def batch_cmd(inputs, outdir, jobs, scheduler, force, n_subjects, segments, joint_method, joint_model, rest_frame, up, units,
               names, rest, strict, exclude, include, cache_dir, no_cache):
     """Fit every take of INPUTS (files, folders of .c3d/.trc, globs) and summarise them.
 
@@ -84,7 +84,7 @@ def batch_cmd(inputs, outdir, jobs, scheduler, force, n_subjects, segments, join
         mocapskel batch 'session*/*.c3d' -o out/ --jobs 4 --up z --units mm
         mocapskel batch /shared/takes -o out/ --scheduler tcp://10.0.0.5:8786
     """
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, joint_model=joint_model, rest_frame=rest_frame, up=up, units=units,
                                   names=names, rest=rest)
     options = BatchOptions(params=params, read=make_read(exclude, include), cache_dir=cache_dir, use_cache=not no_cache,
                            strict=strict)

@@ -136,7 +136,7 @@ def write_report(path, report: dict) -> None:
 @read_options
 @cache_options
 @common
-def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, osim_out, html_path, strict, exclude, include, cache_dir, no_cache):
+def fit_cmd(input, output, segments, joint_method, joint_model, rest_frame, up, units, names, rest, gltf_path, report_path, skeleton_out, markers_out, osim_out, html_path, strict, exclude, include, cache_dir, no_cache):
     """Fit a skeleton to a take (C3D or TRC) and write its motion as BVH.
 
     \b
@@ -161,7 +161,7 @@ def fit_cmd(input, output, segments, joint_method, rest_frame, up, units, names,
 
         check_output(html_path, input, suffixes=HTML_SUFFIXES)
         require_matplotlib()
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, joint_model=joint_model, rest_frame=rest_frame, up=up, units=units,
                                   names=names, rest=rest)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     for r in (res.subjects if len(res.subjects) > 1 else [res]):

@@ -45,7 +45,7 @@ def write_html_report(path: str | os.PathLike, result: pipeline.FitResult) -> in
 @read_options
 @cache_options
 @common
-def report_cmd(input, output, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+def report_cmd(input, output, segments, joint_method, joint_model, rest_frame, exclude, include, cache_dir, no_cache):
     """Write a self-contained HTML report of a fit: plots, tables and an animated 3-D view.
 
     INPUT is a take (.c3d, .trc) or the .npz artifact of any stage (an ik
@@ -66,7 +66,7 @@ def report_cmd(input, output, segments, joint_method, rest_frame, exclude, inclu
 
     check_output(output, input, suffixes=HTML_SUFFIXES)
     require_matplotlib()
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, joint_model=joint_model, rest_frame=rest_frame)
     res = pipeline.fit(input, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     size = write_html_report(output, res)
     log.info("wrote %s (HTML report, %.1f MB)", output, size / 1e6)

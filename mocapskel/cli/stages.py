@@ -33,11 +33,11 @@ def _make(stage: str):
     @read_options
     @cache_options
     @common
-    def cmd(input, output, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache, write_c3d=None):
+    def cmd(input, output, segments, joint_method, joint_model, rest_frame, exclude, include, cache_dir, no_cache, write_c3d=None):
         check_output(output, input, suffixes=(".npz",))
         if write_c3d is not None:
             check_output(write_c3d, input, output, suffixes=(".c3d",))
-        params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame)
+        params = pipeline.make_params(segments=segments, joint_method=joint_method, joint_model=joint_model, rest_frame=rest_frame)
         run = pipeline.run_until(input, stage, params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
         with AtomicOutputs() as out:  # the artifact and the C3D appear together, or neither does
             artifact_files.save(run.artifact, out.stage(output))
@@ -73,7 +73,7 @@ for _s in pipeline.STAGES:
 @read_options
 @cache_options
 @common
-def export_cmd(input, output, up, units, names, rest, segments, joint_method, rest_frame, exclude, include, cache_dir, no_cache):
+def export_cmd(input, output, up, units, names, rest, segments, joint_method, joint_model, rest_frame, exclude, include, cache_dir, no_cache):
     """Write BVH from an ik artifact (or from any earlier input, running what is missing).
 
     \b
@@ -82,7 +82,7 @@ def export_cmd(input, output, up, units, names, rest, segments, joint_method, re
         mocapskel export take_ik.npz -o take.bvh --up z --units mm
     """
     check_output(output, input, suffixes=(".bvh", ".glb", ".gltf"))
-    params = pipeline.make_params(segments=segments, joint_method=joint_method, rest_frame=rest_frame, up=up, units=units,
+    params = pipeline.make_params(segments=segments, joint_method=joint_method, joint_model=joint_model, rest_frame=rest_frame, up=up, units=units,
                                   names=names, rest=rest)
     run = pipeline.run_until(input, "ik", params, cache=make_cache(cache_dir, no_cache), read=make_read(exclude, include))
     b = export.run(run.artifact, params["export"])
