@@ -60,9 +60,8 @@ per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
 A limb's middle joint in line with its neighbours (``line_sigma`` > 0, :func:`limb_lines`): a knee between hip and
 ankle, an elbow between shoulder and wrist, lies, along the axis it turns about, where the line between its two
 neighbours passes, within ``line_sigma`` x their distance: one factor per such joint, linear in the two bones'
-offsets. A walk turns hip, knee
-and ankle about one axis and leaves each free along it; tied, the three move together, and the joint the prior
-places worst no longer slides on its own.
+offsets. A walk turns hip, knee and ankle about one axis and leaves each free along it; tied, the three move
+together, and the joint the prior places worst no longer slides on its own.
 
 Several starts (the joints stage's centres and its second estimate) are each refined with a prior
 centred on its own start (a mixture prior of equal weights); the start of lowest negative log
@@ -304,7 +303,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
     rigid joints. With ``gross``, a fit whose joints stay rigid (the skin test passed) is made again without its gross
-    residuals (:func:`_without_gross`)."""
+    residuals (:func:`_without_gross`). With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
+    its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -337,7 +337,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             planes.append((kids, n, inflate * sn**2 / sm**2))
             tie_sig.append(sm)
     lines = []
-    if line_sigma > 0:  # a hinge lies along its axis in line with its neighbours, as well as a limb is straight
+    if line_sigma > 0:  # a limb's middle joint in line with its neighbours, as straight as a limb is
         for k, j, u, t, length in limb_lines(start, pose.rot, pts[use]):
             sl = max(line_sigma * length, sn)
             lines.append((k, j, u, t, inflate * sn**2 / sl**2))
