@@ -13,6 +13,7 @@ from ..pipeline import ReadOptions
 from .main import setup_logging
 
 JOINT_METHODS = ("auto", "jmv", "mtb", "sphere", "score")
+JOINT_MODELS = ("rules", "map")
 
 
 def verbosity(f):
@@ -42,7 +43,7 @@ def fit_options(f):
     """Options that set stage parameters (segments, joints, rest frame)."""
     f = click.option("--rest-frame", type=click.IntRange(min=0), default=None, help="Frame whose pose is the rest pose [default: a well-visible frame near the start].")(f)
     f = click.option(
-        "--joint-model", type=click.Choice(["rules", "map"]), default="rules", show_default=True,
+        "--joint-model", type=click.Choice(JOINT_MODELS), default="rules", show_default=True,
         help="How the rigid stage places the joints: its rules, or the model's MAP with explicit priors (being compared).",
     )(f)
     f = click.option(

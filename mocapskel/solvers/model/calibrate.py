@@ -465,7 +465,7 @@ def refine_skeleton(
         g0 = _pack(pr, pr.offsets(a_origin), a_local)
     u0 = A @ g0 if A.shape[0] else np.zeros(0)
     h0 = Hh @ g0
-    T = tie_rows(pr, parent, marker_segment, d, like_bones, planes, lines)
+    T = tie_rows(pr, d, like_bones, planes, lines)
 
     def total(p_, R_, d_, l_) -> float:
         c = pr.cost(p_, R_, d_, l_) + float(np.sum(ws * p_[:, 3:] ** 2))

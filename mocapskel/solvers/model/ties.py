@@ -7,12 +7,11 @@ from __future__ import annotations
 import numpy as np
 
 
-def tie_rows(pr, parent: np.ndarray, marker_segment: np.ndarray, d: np.ndarray, like_bones=None, planes=None,
-             lines=None) -> np.ndarray:
+def tie_rows(pr, d: np.ndarray, like_bones=None, planes=None, lines=None) -> np.ndarray:
     """(n, ng) rows ``T`` over the constant unknowns of ``pr`` (a :class:`~mocapskel.solvers.model.calibrate._Problem`),
     ``d`` (S, 3) the bones' offsets at the start (like bones' lengths are linearised along them); the factors as
     :func:`~mocapskel.solvers.model.calibrate.refine_skeleton` takes them."""
-    ng = pr.ng
+    ng, parent, marker_segment = pr.ng, pr.parent, pr.seg
     # like bones: rows sqrt(w) (u_a . d_a - u_b . d_b), held to 0
     trows = []
     for a, b, w in like_bones or ():
