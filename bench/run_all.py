@@ -24,6 +24,7 @@ BENCHES = [
     ("Humanoid names", "bench.names"),
     ("Generated takes that look like real captures", "bench.realistic"),
     ("Real takes with a reference skeleton", "bench.realref"),
+    ("Real takes scored by their anatomical landmarks", "bench.realanat"),
 ]
 
 
