@@ -308,7 +308,7 @@ def test_frames_count_as_the_independent_observations_they_are_worth(monkeypatch
     # that moves a marker the same way for many frames: the refinement's frames are worth fewer, and the
     # joints' regions widen by the square root of that
     from mocapskel.pipeline import make_params, run_until
-    from mocapskel.solvers.model.uncertainty import frames_per_independent
+    from mocapskel.solvers.model.effective import frames_per_independent
     from mocapskel.synth.presets import Recipe, active_rom, make
 
     white = run_until(make(Recipe(kind="human", seed=2, frames=1200, noise_mm=1.0)).markers, "rigid", make_params()).artifact

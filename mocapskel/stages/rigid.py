@@ -27,8 +27,9 @@ from ..solvers.model.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
 from ..solvers.model.uncertainty import prior_share_along, skeleton_uncertainty
+from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 26
+VERSION = 27
 
 
 @dataclass(frozen=True)
@@ -139,11 +140,18 @@ class Params:
     ``"deepened+leaf"``, also a hinge at the end of a limb at its end segment's markers' middle along its
     axis where the markers do not see that move (the geometry of :func:`centre_leaf_hinges`), and the joint of a
     one-marker leaf at its parent's end (:func:`~mocapskel.solvers.model.joint_map.one_marker_ends`)."""
-    data_weight: str = "frames"
+    data_weight: str = "sandwich"
     """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
     correlation in time allows (:func:`~mocapskel.solvers.model.effective.effective_frames`: skin motion
-    makes neighbouring frames' residuals alike)."""
+    makes neighbouring frames' residuals alike); ``"sandwich"``, the data term divided by how many times the
+    spread of the joints' estimates that the residuals show exceeds what independent frames give
+    (:func:`~mocapskel.solvers.model.worth.joint_overdispersion`, measured at a first MAP with rigid joints;
+    the composite likelihood's magnitude adjustment, Pauli, Racugno and Ventura 2011). That factor is about 1 on
+    the generated takes (1-2: their skin's pull on the joints averages out over a take) and 9-13 on the real
+    references, so the generated takes keep what ``"frames"`` gave them and the real ones get about what
+    ``"effective"`` gives: both halves of the generated bench and the real checking half gained (BENCHMARKS,
+    "The data's weight from the scores' spread")."""
     bone_sigma: float = 0.03
     """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
     of their length (a Gaussian factor per pair; 0: no such factor). 0.03: a body's left and right long
@@ -268,8 +276,8 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
     fitted is left out (see :func:`without_unfittable`), and the rest fitted."""
     if params.joint_model not in ("rules", "map"):
         raise ValueError(f"joint_model must be 'rules' or 'map', not {params.joint_model!r}")
-    if params.data_weight not in ("frames", "effective"):
-        raise ValueError(f"data_weight must be 'frames' or 'effective', not {params.data_weight!r}")
+    if params.data_weight not in ("frames", "effective", "sandwich"):
+        raise ValueError(f"data_weight must be 'frames', 'effective' or 'sandwich', not {params.data_weight!r}")
     while True:
         parent, parent_edge, order = _tree(joints)
         rest = _rest(joints, params)
@@ -395,28 +403,41 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma)
 
-    def one(i: int):
+    def one(i: int, soft_sigma: float, inflate: float = 1.0):
         c, st = starts[i]
-        out = map_refine(st, c, soft_sigma=params.soft_sigma, **model)
+        out = map_refine(st, c, soft_sigma=soft_sigma, data_inflate=inflate, **model)
         return replace(out, joints=None)  # sent back from a forked process: without the take
 
-    outs = [replace(o, joints=joints) for o in run_forked(one, range(len(starts)))]
+    def fit_starts(soft_sigma: float, inflate: float = 1.0) -> tuple[list[Skeleton], list[float], int]:
+        outs = [replace(o, joints=joints) for o in run_forked(lambda i: one(i, soft_sigma, inflate), range(len(starts)))]
+        nlp = [o.info["refined"]["neg_log_posterior"] if "refined" in o.info else np.inf for o in outs]
+        return outs, nlp, int(np.argmin(nlp))
+
+    sandwich = params.data_weight == "sandwich"
+    # with "sandwich", a first MAP with rigid joints measures how much the frames overstate what they say about
+    # the joints (:func:`joint_overdispersion`; soft joints would take up the very misfit it measures), and the fit
+    # is made again with the data term weighed down by that factor
+    outs, nlp, win = fit_starts(0.0 if sandwich else params.soft_sigma)
     if any("refined" not in o.info for o in outs):
         return outs[0]
-    nlp = [o.info["refined"]["neg_log_posterior"] for o in outs]
-    win = int(np.argmin(nlp))
+    kappa = 1.0
+    if sandwich:
+        kappa = joint_overdispersion(outs[win])
+        outs, nlp, win = fit_starts(params.soft_sigma, kappa)
+        if any("refined" not in o.info for o in outs):
+            return outs[0]
     best = outs[win]
     z = best.info["refined"]["skin_z"]  # NaN where the skin test was not made (soft_sigma 0)
     if np.isfinite(z) and z <= SKIN_Z and params.rigid_frames > params.refine_frames:
         c, st = starts[win]
-        more = map_refine(st, c, fitted=best, more=params.rigid_frames, **model)
+        more = map_refine(st, c, fitted=best, more=params.rigid_frames, data_inflate=kappa, **model)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],
                 frames_scored=best.info["refined"]["frames"])))
     info = dict(best.info)
     info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
-                           neg_log_posterior_starts=dict(zip(("joints", "framework"), nlp)))
+                           neg_log_posterior_starts=dict(zip(("joints", "framework"), nlp)), data_inflate=kappa)
     return replace(best, info=info)
 
 

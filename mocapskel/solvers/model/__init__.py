@@ -11,6 +11,9 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
   ``joint_model="map"``;
 - :mod:`mocapskel.solvers.model.uncertainty`: each joint's uncertainty, the Laplace approximation
   at a fitted skeleton (``skeleton_uncertainty``);
+- :mod:`mocapskel.solvers.model.effective` and :mod:`mocapskel.solvers.model.worth`: what the frames are worth,
+  from the residuals' correlation in time and from the spread of the joints' estimates they show
+  (``joint_overdispersion``, the data term's weight);
 - :mod:`mocapskel.solvers.model.skin`: how much of the residual follows the joint angles
   (``skin_motion``), the part of the skin's motion the model's noise does not describe;
 - :mod:`mocapskel.solvers.model.refinement`: the refinement of the default ``joint_model="rules"``

@@ -47,3 +47,38 @@ def effective_frames(rho: np.ndarray, frames: np.ndarray) -> float:
     lag = np.abs(t[:, None] - t[None, :])
     r = np.where(lag < rho.size, rho[np.minimum(lag, rho.size - 1)], 0.0)
     return float(t.size**2 / r.sum())
+
+
+#: Frames (the middle of the take) on which the residuals' correlation in time is measured: lags of a few
+#: seconds at most matter, and a long take's refinement frames lie farther apart than that.
+CORRELATION_FRAMES = 512
+
+
+def frames_per_independent(skel) -> float:
+    """How many of the refinement's frames one independent observation is worth: ``n / n_eff``
+    (:func:`~mocapskel.solvers.model.effective.effective_frames`), the residuals' correlation in time
+    (:func:`~mocapskel.solvers.model.effective.correlation_in_time`) measured on the middle
+    ``CORRELATION_FRAMES`` frames of the take: every segment of three or more markers posed on its fitted
+    shape in each frame (:func:`~mocapskel.solvers.ik.segment_poses.segment_poses`), its markers' residuals
+    taken in its frame. Skin that slides with the joint angles keeps a marker's residual alike from one
+    frame to the next; counted as independent, the frames make the data look surer than they are. 1 when
+    it cannot be measured."""
+    from ..ik.segment_poses import segment_poses
+
+    pts = skel.joints.topology.segments.markers.points
+    F = pts.shape[0]
+    lo = max(0, F // 2 - CORRELATION_FRAMES // 2)
+    win = pts[lo : lo + CORRELATION_FRAMES]
+    seg = np.asarray(skel.marker_segment)
+    shapes, cols = [], []
+    for s in np.unique(seg[seg >= 0]):
+        ms = np.flatnonzero(seg == s)
+        if ms.size >= 3:
+            shapes.append(skel.origin[s] + skel.marker_local[ms])
+            cols.append(ms)
+    if not shapes:
+        return 1.0
+    R, t = segment_poses(shapes, cols, win)
+    backs = [np.einsum("fji,fpj->fpi", R[:, b], win[:, ms] - t[:, b, None, :]) - shapes[b] for b, ms in enumerate(cols)]
+    n_eff = effective_frames(correlation_in_time(backs), skel.pose_frames)
+    return max(1.0, skel.pose_frames.size / n_eff) if n_eff > 0 else 1.0

@@ -289,7 +289,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
-               gross: bool = True, line_sigma: float = 0.0) -> Skeleton:
+               gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -304,7 +304,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
     rigid joints. With ``gross``, a fit whose joints stay rigid (the skin test passed) is made again without its gross
     residuals (:func:`_without_gross`). With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
-    its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance."""
+    its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
+    term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
+    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`)."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -320,7 +322,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
-    inflate = use.size / n_eff  # the noise variance per frame, as seen by the data term, times this
+    inflate = data_inflate * use.size / n_eff  # the noise variance per frame, as seen by the data term, times this
     w = np.where(np.isfinite(sig), inflate * sn**2 / np.where(np.isfinite(sig), sig, 1.0) ** 2, 0.0)
     ties, tie_sig = [], []
     if bone_sigma > 0:

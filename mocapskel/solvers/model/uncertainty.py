@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibrate import _exp, _hat, _hold_reference, _Problem
+from .effective import frames_per_independent
 from .skin import skin_motion
 from ..joint_moves import _repose
 from ..parallel import run_blocks
@@ -363,6 +364,22 @@ def _noise_curvature(pr: _Problem, R: np.ndarray, factors: list[tuple], sigma: f
     return out / max(pairs, 1), sq / max(pairs, 1)
 
 
+def _scores(pr: _Problem, R: np.ndarray, factors: list[tuple], Z: np.ndarray, fix_g: np.ndarray) -> np.ndarray:
+    """(n, k) each frame's score of the constant unknowns, its pose eliminated, ``G^T (I - Jf D^-1 Jf^T) r``,
+    times ``Z`` (ng, k) (the gauge's unknowns have no score)."""
+    Zs = Z.copy()
+    Zs[fix_g] = 0.0
+
+    def one(j: int) -> np.ndarray:
+        sl, JfT, Li, w, rr = factors[j]
+        Gz = _g_columns(pr, R[sl], w, Zs)  # (n, 3U, k)
+        Y = Li @ (JfT @ Gz)
+        y = Li @ (JfT @ rr)
+        return (Gz.transpose(0, 2, 1) @ rr - Y.transpose(0, 2, 1) @ y)[..., 0]
+
+    return np.concatenate(run_blocks(one, range(len(factors))))
+
+
 def _sandwich(pr: _Problem, R: np.ndarray, factors: list[tuple], B0: np.ndarray, P: np.ndarray, A: np.ndarray,
               fix_g: np.ndarray, s2: float, frames_per_independent: float) -> np.ndarray:
     """(K, 3, 3) the positive part of each joint's covariance by the sandwich ``B0^-1 (S + P) B0^-1`` less the
@@ -374,17 +391,7 @@ def _sandwich(pr: _Problem, R: np.ndarray, factors: list[tuple], B0: np.ndarray,
     directions only: the scores times ``B0^-1 A^T``."""
     K = A.shape[0] // 3
     Z = np.linalg.solve(B0, A.T)  # (ng, 3K)
-    Zs = Z.copy()
-    Zs[fix_g] = 0.0  # the gauge's unknowns have no score
-
-    def one(j: int) -> np.ndarray:
-        sl, JfT, Li, w, rr = factors[j]
-        Gz = _g_columns(pr, R[sl], w, Zs)  # (n, 3U, 3K)
-        Y = Li @ (JfT @ Gz)
-        y = Li @ (JfT @ rr)
-        return (Gz.transpose(0, 2, 1) @ rr - Y.transpose(0, 2, 1) @ y)[..., 0]  # (n, 3K)
-
-    sc = np.concatenate(run_blocks(one, range(len(factors)))) / s2
+    sc = _scores(pr, R, factors, Z, fix_g) / s2
     block = max(1, int(round(frames_per_independent)))
     sb = np.add.reduceat(sc, np.arange(0, sc.shape[0], block), axis=0)
     full = sb.T @ sb + Z.T @ P @ Z - A @ Z  # (3K, 3K)
@@ -405,6 +412,31 @@ def _dof(pr: _Problem) -> tuple[int, int]:
     n = 3 * int(w.sum())
     k = 3 * F + 3 * int(active.sum()) + pr.ng - 3 * pr.S - 3
     return n, n - k
+
+
+def _fitted(parent, origin, marker_segment, marker_local, observed, rot, root_pos, ref_frame: int,
+            soft: dict[int, float] | None = None, soft_noise: float = 1.0, chunk: int = 128) -> tuple | None:
+    """(problem, bone offsets, marker offsets, rotations, each frame's root origin and soft offsets, degrees of
+    freedom, the noise variance the residual measures, the gauge's unknowns, the reduced normal matrix) of a fitted
+    skeleton posed on ``observed``; None when the residual leaves no degree of freedom to measure the noise."""
+    parent = np.asarray(parent)
+    sc = sorted(int(c) for c, v in (soft or {}).items() if parent[int(c)] >= 0 and v > 0)
+    pr = _Problem(parent, np.asarray(marker_segment), observed, sc, [soft_noise**2 / soft[c] ** 2 for c in sc])
+    if not pr.kids or pr.used.size == 0:
+        return None
+    d = pr.offsets(origin)
+    l = np.array(marker_local, dtype=float)
+    R = np.asarray(rot, dtype=float)
+    p, soft_dof = pr.soft_offsets(root_pos, R, d, l)
+    _, dof = _dof(pr)
+    dof -= soft_dof
+    cost = pr.cost(p, R, d, l)
+    if dof <= 0 or not np.isfinite(cost):
+        return None
+    s2 = max(cost / dof, 1e-12)
+    pr.ws = np.repeat([s2 / soft[c] ** 2 for c in sc], 3)  # the offsets' prior against the noise measured here
+    fix_g = _gauge_fixed(pr)
+    return pr, d, l, R, p, dof, s2, fix_g, reduced_normal_matrix(pr, p, R, d, l, ref_frame, fix_g, chunk)
 
 
 def joint_uncertainty(
@@ -442,23 +474,11 @@ def joint_uncertainty(
     """
     parent = np.asarray(parent)
     S = len(parent)
-    sc = sorted(int(c) for c, v in (soft or {}).items() if parent[int(c)] >= 0 and v > 0)
-    pr = _Problem(parent, np.asarray(marker_segment), observed, sc, [soft_noise**2 / soft[c] ** 2 for c in sc])
-    if not pr.kids or pr.used.size == 0:
+    fit = _fitted(parent, origin, marker_segment, marker_local, observed, rot, root_pos, ref_frame, soft, soft_noise, chunk)
+    if fit is None:
         return None
-    d = pr.offsets(origin)
-    l = np.array(marker_local, dtype=float)
-    R = np.asarray(rot, dtype=float)
-    p, soft_dof = pr.soft_offsets(root_pos, R, d, l)
-    n_obs, dof = _dof(pr)
-    dof -= soft_dof
-    cost = pr.cost(p, R, d, l)
-    if dof <= 0 or not np.isfinite(cost):
-        return None
-    s2 = max(cost / dof, 1e-12)
-    pr.ws = np.repeat([s2 / soft[c] ** 2 for c in sc], 3)  # the offsets' prior against the noise measured here
-    fix_g = _gauge_fixed(pr)
-    H0 = reduced_normal_matrix(pr, p, R, d, l, ref_frame, fix_g, chunk)
+    pr, d, l, R, p, dof, s2, fix_g, H0 = fit
+    sc = pr.soft
     kids = np.array(pr.kids, dtype=int)
     K = kids.size
     size = segment_sizes(parent, origin, marker_segment, marker_local)
@@ -651,39 +671,3 @@ def prior_share_along(joint: dict, u: np.ndarray) -> float:
     u = np.asarray(u, dtype=float) / np.linalg.norm(u)
     lam = float(np.sum((D @ u) ** 2 / sd**2))
     return float(np.clip((1.0 / float(joint["prior_sd_mm"]) ** 2) / lam, 0.0, 1.0)) if lam > 0 else 1.0
-
-
-#: Frames (the middle of the take) on which the residuals' correlation in time is measured: lags of a few
-#: seconds at most matter, and a long take's refinement frames lie farther apart than that.
-CORRELATION_FRAMES = 512
-
-
-def frames_per_independent(skel) -> float:
-    """How many of the refinement's frames one independent observation is worth: ``n / n_eff``
-    (:func:`~mocapskel.solvers.model.effective.effective_frames`), the residuals' correlation in time
-    (:func:`~mocapskel.solvers.model.effective.correlation_in_time`) measured on the middle
-    ``CORRELATION_FRAMES`` frames of the take: every segment of three or more markers posed on its fitted
-    shape in each frame (:func:`~mocapskel.solvers.ik.segment_poses.segment_poses`), its markers' residuals
-    taken in its frame. Skin that slides with the joint angles keeps a marker's residual alike from one
-    frame to the next; counted as independent, the frames make the data look surer than they are. 1 when
-    it cannot be measured."""
-    from ..ik.segment_poses import segment_poses
-    from .effective import correlation_in_time, effective_frames
-
-    pts = skel.joints.topology.segments.markers.points
-    F = pts.shape[0]
-    lo = max(0, F // 2 - CORRELATION_FRAMES // 2)
-    win = pts[lo : lo + CORRELATION_FRAMES]
-    seg = np.asarray(skel.marker_segment)
-    shapes, cols = [], []
-    for s in np.unique(seg[seg >= 0]):
-        ms = np.flatnonzero(seg == s)
-        if ms.size >= 3:
-            shapes.append(skel.origin[s] + skel.marker_local[ms])
-            cols.append(ms)
-    if not shapes:
-        return 1.0
-    R, t = segment_poses(shapes, cols, win)
-    backs = [np.einsum("fji,fpj->fpi", R[:, b], win[:, ms] - t[:, b, None, :]) - shapes[b] for b, ms in enumerate(cols)]
-    n_eff = effective_frames(correlation_in_time(backs), skel.pose_frames)
-    return max(1.0, skel.pose_frames.size / n_eff) if n_eff > 0 else 1.0
