@@ -149,9 +149,9 @@ class Params:
     (:func:`~mocapskel.solvers.model.worth.joint_overdispersion`, measured at a first MAP with rigid joints;
     the composite likelihood's magnitude adjustment, Pauli, Racugno and Ventura 2011). That factor is about 1 on
     the generated takes (1-2: their skin's pull on the joints averages out over a take) and 9-13 on the real
-    references, so the generated takes keep what ``"frames"`` gave them and the real ones get about what
-    ``"effective"`` gives: both halves of the generated bench and the real checking half gained (BENCHMARKS,
-    "The data's weight from the scores' spread")."""
+    references of people (143 on the robot arm, whose chain most likely lacks a link), so the generated takes keep
+    what ``"frames"`` gave them and the real ones get about what ``"effective"`` gives: both halves of the generated
+    bench and the real checking half gained (BENCHMARKS, "The data's weight from the scores' spread")."""
     bone_sigma: float = 0.03
     """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
     of their length (a Gaussian factor per pair; 0: no such factor). 0.03: a body's left and right long
@@ -413,7 +413,9 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
 
     def fit_starts(soft_sigma: float, inflate: float = 1.0) -> tuple[list[Skeleton], list[float], int]:
         outs = [replace(o, joints=joints) for o in run_forked(lambda i: one(i, soft_sigma, inflate), range(len(starts)))]
-        nlp = [o.info["refined"]["neg_log_posterior"] if "refined" in o.info else np.inf for o in outs]
+        if any("refined" not in o.info for o in outs):  # too few frames to refine: the first start as it is
+            return outs, [], 0
+        nlp = [o.info["refined"]["neg_log_posterior"] for o in outs]
         return outs, nlp, int(np.argmin(nlp))
 
     sandwich = params.data_weight == "sandwich"
@@ -421,14 +423,12 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     # the joints (:func:`joint_overdispersion`; soft joints would take up the very misfit it measures), and the fit
     # is made again with the data term weighed down by that factor
     outs, nlp, win = fit_starts(0.0 if sandwich else params.soft_sigma)
-    if any("refined" not in o.info for o in outs):
-        return outs[0]
     kappa = 1.0
-    if sandwich:
+    if sandwich and nlp:
         kappa = joint_overdispersion(outs[win])
         outs, nlp, win = fit_starts(params.soft_sigma, kappa)
-        if any("refined" not in o.info for o in outs):
-            return outs[0]
+    if not nlp:
+        return outs[0]
     best = outs[win]
     z = best.info["refined"]["skin_z"]  # NaN where the skin test was not made (soft_sigma 0)
     if np.isfinite(z) and z <= SKIN_Z and params.rigid_frames > params.refine_frames:

@@ -237,6 +237,27 @@ def _joint_operator(pr: _Problem, local: np.ndarray, c: int, s: int | None = Non
     return A, n
 
 
+def _joint_operators(pr: _Problem, l: np.ndarray, d: np.ndarray, kids: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(3K, ng) every joint of ``kids`` against its frame's markers (:func:`_joint_operator`, the frame
+    :func:`_frame_segment`'s), stacked; (K,) each one's frame segment; (K,) how many points define that frame's turn."""
+    frames = [_frame_segment(pr, l, int(c), d) for c in kids]
+    ops = [_joint_operator(pr, l, int(c), f, d, j) for c, (f, j) in zip(kids, frames)]
+    return (np.concatenate([a for a, _ in ops]), np.array([f for f, _ in frames], dtype=int),
+            np.array([n for _, n in ops], dtype=int))
+
+
+def _gauged(B: np.ndarray, fix_g: np.ndarray, scale: float | None = None) -> tuple[np.ndarray, float]:
+    """A precision over the constant unknowns made invertible: the gauge's unknowns (no part of any joint's
+    position) at ``scale`` (None: the largest diagonal entry), and a ridge of 1e-12 of it; and that scale."""
+    if scale is None:
+        scale = max(float(np.abs(np.diag(B)).max()), 1e-300)
+    B = B.copy()
+    B[fix_g, fix_g] = scale
+    B += 1e-12 * scale * np.eye(B.shape[0])
+    return B, scale
+
+
 def _gauge_fixed(pr: _Problem) -> np.ndarray:
     """(ng,) which constant unknowns the gauge fixes: the root's origin, by one of its joints (or markers)."""
     fix_g = np.zeros(pr.ng, dtype=bool)
@@ -478,21 +499,14 @@ def joint_uncertainty(
     if fit is None:
         return None
     pr, d, l, R, p, dof, s2, fix_g, H0 = fit
-    sc = pr.soft
     kids = np.array(pr.kids, dtype=int)
     K = kids.size
     size = segment_sizes(parent, origin, marker_segment, marker_local)
     prior_sd = np.maximum(prior_scale * size[kids], 1.0)
-    frames = [_frame_segment(pr, l, int(c), d) for c in kids]
-    frame = np.array([f for f, _ in frames], dtype=int)
-    ops = [_joint_operator(pr, l, int(c), f, d, j) for c, (f, j) in zip(kids, frames)]
-    A = np.concatenate([a for a, _ in ops])  # (3K, ng)
+    A, frame, frame_markers = _joint_operators(pr, l, d, kids)  # (3K, ng)
     P = (A.T / np.repeat(prior_sd, 3) ** 2) @ A  # the prior's precision over the constant unknowns
     s2p = s2 * max(float(frames_per_independent), 1.0)  # the variance the data's precision is in units of
-    B = H0 / s2p + P  # the posterior precision before the noise's part is taken out
-    scale = max(float(np.abs(np.diag(B)).max()), 1e-300)
-    B[fix_g, fix_g] = scale  # the gauge's unknowns: no part of any joint's position
-    B += 1e-12 * scale * np.eye(pr.ng)
+    B, scale = _gauged(H0 / s2p + P, fix_g)  # the posterior precision before the noise's part is taken out
     # the directions the prior weighs in at all: the data's share rho of the precision along each (the
     # generalized eigenvectors of the data's part against B, B-orthonormal), the 3K where it is least (and the gauge's, of none)
     rho, V = _eigh_generalized(H0 / s2p, B)
@@ -527,17 +541,15 @@ def joint_uncertainty(
     cov = C[np.arange(K), :, np.arange(K), :]  # (K, 3, 3)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
     # what the residuals themselves show beyond the model's noise (the sandwich; see the module docstring)
-    B0 = H0 / s2 + P
-    B0[fix_g, fix_g] = scale
-    B0 += 1e-12 * scale * np.eye(pr.ng)
+    B0, _ = _gauged(H0 / s2 + P, fix_g, scale)
     spread = _sandwich(pr, R, factors, B0, P, A, fix_g, s2, frames_per_independent)
     sd, directions = _principal(cov)
     share = np.clip(sd**2 / prior_sd[:, None] ** 2, 0.0, 1.0)
     turned, lacks = _axes(pr, R, l, kids, directions[:, 0])
     return JointUncertainty(
         kids=kids, cov=cov, spread=spread, sd=sd, directions=directions, prior_share=share, prior_sd=prior_sd,
-        frame=frame, frame_markers=np.array([n for _, n in ops], dtype=int), turned_about=turned, lacks_axis=lacks,
-        noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]), soft=tuple(sc), pose_p=p,
+        frame=frame, frame_markers=frame_markers, turned_about=turned, lacks_axis=lacks,
+        noise_sd=float(np.sqrt(s2)), dof=int(dof), frames=int(p.shape[0]), soft=tuple(pr.soft), pose_p=p,
     )
 
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from .joint_map import NOISE_FLOOR_MM
 from .effective import frames_per_independent
-from .uncertainty import _fitted, _frame_segment, _joint_operator, _pose_factors, _scores, segment_sizes
+from .uncertainty import _fitted, _gauged, _joint_operators, _pose_factors, _scores, segment_sizes
 
 __all__ = ["joint_overdispersion"]
 
@@ -24,10 +24,11 @@ def joint_overdispersion(skel, prior_scale: float = 1.0) -> float:
     Skin that slides with the pose gives scores that stay alike from frame to frame and pull the same way: their
     sum spreads more than independent noise lets it. At the model path's MAP with rigid joints: the generated
     48-marker range of motion (soft tissue independent of the pose) 1.1, the realistic generator's walks 1.2-2.0,
-    real takes 4-13 (BENCHMARKS, "Why the generated takes and the real ones pull opposite ways"). It is the factor
-    by which the frames, counted as independent, overstate what they say about the joints: the composite
-    likelihood's magnitude adjustment (Pauli, Racugno and Ventura 2011). 1 where the residual is below
-    :data:`~mocapskel.solvers.model.joint_map.NOISE_FLOOR_MM` (a noise-free take's is the solver's tolerance)."""
+    real takes of people 6-13, 21 where one segment is a body that is not rigid (BENCHMARKS, "Why the generated
+    takes and the real ones pull opposite ways"). It is the factor by which the frames, counted as independent,
+    overstate what they say about the joints: the composite likelihood's magnitude adjustment (Pauli, Racugno and
+    Ventura 2011). 1 where the residual is below :data:`~mocapskel.solvers.model.joint_map.NOISE_FLOOR_MM` (a
+    noise-free take's is the solver's tolerance)."""
     if skel.pose_rot is None or skel.pose_frames is None or skel.joints is None:
         return 1.0
     ref = int(np.searchsorted(skel.pose_frames, skel.rest_frame))
@@ -44,14 +45,9 @@ def joint_overdispersion(skel, prior_scale: float = 1.0) -> float:
     kids = np.array(pr.kids, dtype=int)
     size = segment_sizes(skel.parent, skel.origin, skel.marker_segment, skel.marker_local)
     prior_sd = np.repeat(np.maximum(prior_scale * size[kids], 1.0), 3)
-    A = np.concatenate([_joint_operator(pr, l, int(c), f, d, j)[0]
-                        for c, (f, j) in ((c, _frame_segment(pr, l, int(c), d)) for c in kids)])
+    A = _joint_operators(pr, l, d, kids)[0]
     P = (A.T / prior_sd**2) @ A
-    B = H0 / s2 + P
-    scale = max(float(np.abs(np.diag(B)).max()), 1e-300)
-    B[fix_g, fix_g] = scale
-    B += 1e-12 * scale * np.eye(pr.ng)
-    Z = np.linalg.solve(B, A.T)  # (ng, 3K)
+    Z = np.linalg.solve(_gauged(H0 / s2 + P, fix_g)[0], A.T)  # (ng, 3K)
     sc = _scores(pr, R, _pose_factors(pr, p, R, d, l, ref), Z, fix_g) / s2
     sc = sc - sc.mean(0)  # their spread about their mean (which the prior's pull sets at the MAP)
     lags = int(round(frames_per_independent(skel)))
