@@ -1,6 +1,7 @@
 """Every real take of ``../shared/realdata/`` through ``mocapskel fit``: what it makes of them.
 
-    python -m bench.realdata            # markdown to stdout (nothing when the folder is absent)
+    python -m bench.realdata                      # markdown to stdout (nothing when the folder is absent)
+    python -m bench.realdata --joint-model map    # the same with that option of ``fit``
 
 No take has a reference skeleton, so this reports what can be judged without
 one: whether the fit succeeds (or the documented error), how many segments it
@@ -23,6 +24,12 @@ REALDATA = REPO.parent / "shared" / "realdata"
 
 
 def main() -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--joint-model", default=None, help="passed to fit (its default when not given)")
+    args = ap.parse_args()
+    extra = [] if args.joint_model is None else ["--joint-model", args.joint_model]
     if not REALDATA.is_dir():
         print("(the real-take folder is absent: nothing measured)\n")
         return
@@ -34,7 +41,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as d:
             rep = Path(d) / "r.json"
             t = time.perf_counter()
-            r = subprocess.run([exe, "fit", str(p), "-o", str(Path(d) / "o.bvh"), "--report", str(rep), "--no-cache", "-q"],
+            r = subprocess.run([exe, "fit", str(p), "-o", str(Path(d) / "o.bvh"), "--report", str(rep), "--no-cache", "-q", *extra],
                                capture_output=True, text=True)
             wall = time.perf_counter() - t
             if r.returncode == 0:

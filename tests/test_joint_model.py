@@ -341,3 +341,29 @@ def test_the_scores_spread_says_when_frames_are_worth_less_than_independent_ones
     # weighed by it, the sliding take's fit says how much less its frames count; the white one's hardly changes
     got = pipeline.run_until(replace(take.markers, points=pts), "rigid", {"rigid": rigid.Params(joint_model="map")}).artifact
     assert got.info["refined"]["data_inflate"] == pytest.approx(sliding, rel=0.05)
+
+
+def test_a_skin_test_carried_from_the_first_map_gives_the_same_fit(monkeypatch):
+    """With the data weighed by their scores' spread, the first MAP's skin test is carried to the fit that counts,
+    which then makes its soft fit without the rigid one that test would be measured at: the same skeleton as
+    measuring it again (the soft fit starts from the start either way)."""
+    import mocapskel.solvers.model.joint_map as joint_map
+    import mocapskel.stages.rigid as rigid_stage
+
+    take = make(realistic(seed=1, frames=300, motion="walk", markerset="cmu41"))
+    j = pipeline.run_until(evaluate.true_topology(take.truth, pipeline.run_until(take.markers, "clean").artifact), "joints").artifact
+    fit = {"rigid": rigid.Params(joint_model="map", uncertainty=False)}
+    monkeypatch.setattr(rigid_stage, "run_forked", lambda fn, items: [fn(x) for x in items])  # calls counted here
+    calls = []
+    refine = joint_map.refine_skeleton
+    monkeypatch.setattr(joint_map, "refine_skeleton", lambda *a, **k: calls.append(bool(k.get("soft"))) or refine(*a, **k))
+    carried = pipeline.run_until(j, "rigid", fit).artifact
+    assert carried.info["refined"]["skin_z"] > 3.0 and carried.info["refined"]["soft_sigma_mm"]
+    n_carried, calls[:] = len(calls), []
+    orig = rigid_stage.map_refine
+    monkeypatch.setattr(rigid_stage, "map_refine", lambda *a, skin=None, **k: orig(*a, **k))
+    again = pipeline.run_until(j, "rigid", fit).artifact
+    assert again.info["refined"]["skin_z"] > 3.0
+    assert n_carried < len(calls), (n_carried, calls)  # the rigid fits skipped
+    np.testing.assert_allclose(carried.origin, again.origin, atol=1e-9)
+    np.testing.assert_allclose(carried.marker_local, again.marker_local, atol=1e-9, equal_nan=True)

@@ -289,7 +289,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
-               gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0) -> Skeleton:
+               gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
+               soft_fit: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -306,7 +307,10 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     residuals (:func:`_without_gross`). With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
     its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
-    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`)."""
+    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
+measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
+:data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the skin
+test made (``info["refined"]["skin_z"]``) but no soft fit."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -360,19 +364,24 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         pose = solve(fitted, pts[use], c[use])
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
         base = fitted
-    res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local, pts[use],
-                          pose.rot, pose.root_pos, **kw)
-    before = res.rms[0]
     skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
-    if soft_sigma > 0 and fitted is None:
+    if skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z:
+        # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
+        # soft fit alone
+        skin_z, soft, res = skin, _soft_joints(start, soft_sigma), None
+    if not soft:
+        res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local, pts[use],
+                              pose.rot, pose.root_pos, **kw)
+    if soft_sigma > 0 and fitted is None and res is not None:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
         # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
         skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
                              res.root_pos).z
-        soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z else {}
-        if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
-            res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                                  pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+        soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
+    if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
+        res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                              pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+    before = res.rms[0]
     n_gross, t2 = 0, 0.0
     if gross and not soft and skin_z <= SKIN_Z:  # the residual is the noise: what lies far beyond it is no draw of it
         obs, n_gross, t2 = _without_gross(start, res, pts[use])

@@ -132,6 +132,8 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
         for i in np.flatnonzero(marker_segment[pr.used] == s):
             r = np.einsum("fji,fj->fi", rot[:, s], res[:, i])  # in the segment's axes
             ok = seen & np.isfinite(r).all(1)
+            if ok.sum() < 3:  # too few frames for any regression (and no mean of nothing)
+                continue
             t = th[ok] - th[ok].mean(0)
             X = np.concatenate([np.ones((t.shape[0], 1)), t, (t[:, :, None] * t[:, None, :])[:, iu[0], iu[1]]], axis=1)
             y = r[ok] - r[ok].mean(0)
