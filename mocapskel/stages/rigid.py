@@ -195,6 +195,12 @@ class Params:
     data weighed by their scores' spread it gained a little on every half of the generated bench and held cmu_16_07's
     two hips where a walk leaves them free (51.3 mm over 12 joints against 59.7; BENCHMARKS, "The data's weight from
     the scores' spread"); with every frame independent it had cost a reach 34 mm and stayed off."""
+    mean_ratio: float | None = 1.0
+    """With ``joint_model="map"``: the hinge test of the prior's mean (which joints it deepens and centres at a leaf's
+    markers), as ``hinge_ratio``; None: ``hinge_ratio``. 1: no test, every joint about the axis it turns about most, so
+    that the starts of a take deepen the same joints where their poses agree on the axes (the tight prior along a
+    hinge's axis, ``hinge_scale``, stays with ``hinge_ratio``'s hinges: a joint the motion fixes is not held there)
+    (BENCHMARKS, "The prior's mean without a hinge test")."""
     weight_iterations: int = 20
     """With ``data_weight="sandwich"``: the iterations of the first MAP, the one the data's weight is measured at (the
     fit that counts has ``refine_iterations``). Its factor needs no converged MAP: 20 against 60 iterations changed
@@ -407,7 +413,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
 
     model = dict(frames=params.refine_frames, iterations=params.refine_iterations, noise=noise, scale=params.prior_scale,
-                 mean=params.prior_mean, hinge_ratio=params.hinge_ratio, rho=rho, bone_sigma=params.bone_sigma,
+                 mean=params.prior_mean, hinge_ratio=params.hinge_ratio, mean_ratio=params.mean_ratio, rho=rho, bone_sigma=params.bone_sigma,
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma)
 

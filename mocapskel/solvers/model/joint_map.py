@@ -290,7 +290,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
-               soft_fit: bool = True) -> Skeleton:
+               soft_fit: bool = True, mean_ratio: float | None = None) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -310,7 +310,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
 measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
 :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the skin
-test made (``info["refined"]["skin_z"]``) but no soft fit."""
+test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean (the
+deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -320,9 +321,10 @@ test made (``info["refined"]["skin_z"]``) but no soft fit."""
     pose = solve(start, pts[use], c[use])
     centre = start
     if mean in ("deepened", "deepened+leaf"):
-        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), hinge_ratio)
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos),
+                               hinge_ratio if mean_ratio is None else mean_ratio)
     if mean == "deepened+leaf":
-        centre = one_marker_ends(centre_leaf_hinges(centre, hinge_ratio))
+        centre = one_marker_ends(centre_leaf_hinges(centre, hinge_ratio if mean_ratio is None else mean_ratio))
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
