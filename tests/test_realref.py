@@ -56,27 +56,29 @@ def test_walking_take_finds_the_leg_joints(tmp_path: Path) -> None:
     assert s["bone_err_mm_mean"] <= 12.0, s["bones"]
 
 
-def test_the_model_paths_knees_lie_in_line_with_hips_and_ankles_on_a_gait_lab_walk(tmp_path: Path) -> None:
-    """The same walk on the model path (``joint_model="map"``): no knee markers, lateral thigh and shank clusters, so
-    the data leave each knee free along its flexion axis. Lined up with its hip and ankle (``line_sigma``), the right
-    knee ends within 45 mm of the reference (37.4 now; 56.3 without the line factor, the joints stage's 43.6 pulled
-    further along the axis), all six joints within 32 mm rms (30.2; 33.2 without)."""
+
+def _walk_on_the_model_path(tmp_path: Path, **kw) -> dict:
+    """opensim_test_walking fitted on the model path with ``rigid.Params`` ``kw``, scored against its reference."""
     if not (REALREF / "score.py").is_file():
         pytest.skip(MISSING)
     from mocapskel.io.bvh import write_bvh
     from mocapskel.stages import rigid
 
-    out = {}
-    for ls in (0.0, 0.01):
-        params = pipeline.make_params(up="z", units="mm")
-        params["rigid"] = rigid.Params(joint_model="map", line_sigma=ls)
-        b = pipeline.fit(REALREF / "opensim_test_walking.c3d", params).bvh
-        bvh = tmp_path / f"walk_{ls}.bvh"
-        write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-        r = subprocess.run([sys.executable, str(REALREF / "score.py"), "opensim_test_walking", str(bvh)],
-                           capture_output=True, text=True, check=True)
-        out[ls] = json.loads(r.stdout.strip().splitlines()[-1])
-    free, lined = out[0.0], out[0.01]
+    params = pipeline.make_params(up="z", units="mm")
+    params["rigid"] = rigid.Params(joint_model="map", **kw)
+    b = pipeline.fit(REALREF / "opensim_test_walking.c3d", params).bvh
+    bvh = tmp_path / ("walk_" + "_".join(f"{k}{v}" for k, v in kw.items()) + ".bvh")
+    write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
+    r = subprocess.run([sys.executable, str(REALREF / "score.py"), "opensim_test_walking", str(bvh)],
+                       capture_output=True, text=True, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+def test_the_model_paths_knees_lie_in_line_with_hips_and_ankles_on_a_gait_lab_walk(tmp_path: Path) -> None:
+    """The same walk on the model path (``joint_model="map"``): no knee markers, lateral thigh and shank clusters, so
+    the data leave each knee free along its flexion axis. Lined up with its hip and ankle (``line_sigma``), the right
+    knee ends within 45 mm of the reference (37.4 now; 56.3 without the line factor, the joints stage's 43.6 pulled
+    further along the axis), all six joints within 32 mm rms (30.2; 33.2 without)."""
+    free, lined = (_walk_on_the_model_path(tmp_path, line_sigma=ls) for ls in (0.0, 0.01))
     knee = next(k for k in lined["per_joint_rms_mm"] if k.startswith("RKJC"))
     assert lined["joints_matched"] == 6 and lined["joint_rms_mean_mm"] <= 32.0, lined["per_joint_rms_mm"]
     assert lined["per_joint_rms_mm"][knee] <= 45.0 < free["per_joint_rms_mm"][knee], (lined, free)
@@ -87,22 +89,7 @@ def test_the_model_paths_prior_mean_deepens_without_a_hinge_test(tmp_path: Path)
     """The same walk: the prior's mean deepens and centres every joint that qualifies, about the axis it turns about
     most (``mean_ratio=1``), not only those that pass the hinge test: the left ankle 27.0 -> 20.6 mm from the reference,
     the six joints 29.6 -> 28.2 mm rms."""
-    if not (REALREF / "score.py").is_file():
-        pytest.skip(MISSING)
-    from mocapskel.io.bvh import write_bvh
-    from mocapskel.stages import rigid
-
-    out = {}
-    for ratio in (None, 1.0):
-        params = pipeline.make_params(up="z", units="mm")
-        params["rigid"] = rigid.Params(joint_model="map", mean_ratio=ratio)
-        b = pipeline.fit(REALREF / "opensim_test_walking.c3d", params).bvh
-        bvh = tmp_path / f"walk_{ratio}.bvh"
-        write_bvh(bvh, b.skeleton, b.root_pos, b.local_rot, b.frame_time)
-        r = subprocess.run([sys.executable, str(REALREF / "score.py"), "opensim_test_walking", str(bvh)],
-                           capture_output=True, text=True, check=True)
-        out[ratio] = json.loads(r.stdout.strip().splitlines()[-1])
-    tested, untested = out[None], out[1.0]
+    tested, untested = (_walk_on_the_model_path(tmp_path, mean_ratio=r) for r in (None, 1.0))
     ankle = next(k for k in untested["per_joint_rms_mm"] if k.startswith("LAJC"))
     assert untested["joints_matched"] == 6 and untested["joint_rms_mean_mm"] <= 29.0, untested["per_joint_rms_mm"]
     assert untested["per_joint_rms_mm"][ankle] <= tested["per_joint_rms_mm"][ankle] - 4.0, (untested, tested)
