@@ -11,6 +11,7 @@ take runs ``mocapskel fit`` in a fresh process.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -24,8 +25,6 @@ REALDATA = REPO.parent / "shared" / "realdata"
 
 
 def main() -> None:
-    import argparse
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--joint-model", default=None, help="passed to fit (its default when not given)")
     args = ap.parse_args()

@@ -307,11 +307,11 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     residuals (:func:`_without_gross`). With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
     its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
-    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
-measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
-:data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the skin
-test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean (the
-deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps."""
+        independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
+    measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
+    :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the
+    skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
+    (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -320,11 +320,11 @@ deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge 
     c = _centres_by_edges(start, centres)
     pose = solve(start, pts[use], c[use])
     centre = start
+    ratio = hinge_ratio if mean_ratio is None else mean_ratio  # the mean's hinge test
     if mean in ("deepened", "deepened+leaf"):
-        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos),
-                               hinge_ratio if mean_ratio is None else mean_ratio)
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), ratio)
     if mean == "deepened+leaf":
-        centre = one_marker_ends(centre_leaf_hinges(centre, hinge_ratio if mean_ratio is None else mean_ratio))
+        centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
