@@ -269,6 +269,42 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     assert err[0][seg] < 35.0, (seg, err[0][seg], err[1][seg])
 
 
+def test_like_knees_share_their_half_width_when_one_thigh_measures_thin(kick):
+    """A knee's half-width is the mean of its thigh's and shank's, each measured off one marker's distance from a
+    bone line drawn through the start's joints. Where the start's hip is off, the line passes near the thigh marker
+    and the limb measures thin (a real walk's right thigh: 4.6 mm, its knee left at its marker, 75 mm from the
+    reference). Here a generated kick's right hip is moved so that the thigh's line passes through its marker (the
+    markers kept where they were): measured alone, that knee's half-width halves and it stays at its marker; with
+    the left knee's measure (``like``: a person's knees are as wide as each other), both knees come nearer the truth."""
+    from mocapskel.solvers.model.joint_map import like_bone_pairs
+
+    take, _, flat = kick
+    labels = list(take.markers.labels)
+    m = labels.index("RTHI")
+    c = int(flat.marker_segment[m])  # the right thigh; its child the right shank, the knee's segment
+    k = int(np.flatnonzero(flat.parent == c)[0])
+    pos = rest_pose._rest_markers(flat)
+    length = np.linalg.norm(flat.origin[c] - flat.origin[k])
+    u, w = (flat.origin[c] - flat.origin[k]) / length, pos[m] - flat.origin[k]
+    hip = flat.origin[c] + (w - (w @ u) * u) * length / float(w @ u)  # the hip-knee line through the marker
+    origin, local = joint_moves._move_joint(flat.origin, flat.marker_local, flat.marker_segment, c, hip - flat.origin[c])
+    slanted = replace(flat, origin=origin, marker_local=local)
+    hr = rigid.Params().hinge_ratio
+    like = like_bone_pairs(slanted)
+    other = next(y if x == k else x for x, y in like if k in (x, y))
+    alone = deepen._deepen(slanted, hr, None, {})[1]
+    assert alone[k] < 0.6 * alone[other], alone
+    pooled = deepen.like_half_widths(slanted, hr, like)
+    assert pooled[k] == pooled[other] == pytest.approx(0.5 * (alone[k] + alone[other]))
+
+    def knees(s):
+        e = evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each
+        return np.array([e["LShank"], e["RShank"]])
+
+    err_alone, err_like = knees(deepen.deepen_joints(slanted, hr)), knees(deepen.deepen_joints(slanted, hr, like=like))
+    assert np.all(err_like < err_alone - 3.0), (err_alone, err_like)
+
+
 @pytest.fixture(scope="module")
 def rom_cmu():
     """A realistic CMU-set range of motion (seed 1), its joints stage on the true grouping, and a function

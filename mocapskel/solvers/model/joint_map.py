@@ -13,7 +13,7 @@ size_cs being the rms distance of segment s's markers from the joint at rest (ho
 reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
 hinge with a marker over its axis one limb half-width inside that marker along the axis
 (``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.rules.deepen.deepen_joints`, a surface
-marker sitting outside the bone, as the prior's mean). The MAP minimises
+marker sitting outside the bone, as the prior's mean; like limbs' joints at the mean of their two half-widths). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
         [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2] [+ sum_hinges,s (a_c . (joint_cs - mean_cs))^2 / sigma_hs^2]
@@ -290,7 +290,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
-               soft_fit: bool = True, mean_ratio: float | None = None) -> Skeleton:
+               soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -311,7 +311,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
     :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
-    (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps."""
+    (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
+    ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
+    (:func:`~mocapskel.solvers.rules.deepen.like_half_widths`)."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -322,7 +324,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     centre = start
     ratio = hinge_ratio if mean_ratio is None else mean_ratio  # the mean's hinge test
     if mean in ("deepened", "deepened+leaf"):
-        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), ratio)
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), ratio,
+                               like=like_bone_pairs(start) if like_widths else None)
     if mean == "deepened+leaf":
         centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
     sn = noise

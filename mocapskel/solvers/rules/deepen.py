@@ -75,7 +75,8 @@ def _inward(skel: Skeleton, p: int, m: int, ax: np.ndarray, at_rest: float) -> f
     return float(np.sign(np.median(v))) or 1.0
 
 
-def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None = None) -> Skeleton:
+def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None = None,
+                  like: list[tuple[int, int]] | None = None) -> Skeleton:
     """Hinges between two limbs with a marker over their axis get their centre one limb half-width
     inside that marker.
 
@@ -97,18 +98,40 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
     the fit left it. Each segment keeps its markers where they were; the move is along the axis the
     joint turns about, so the poses still fit. With ``share`` (as in
     :func:`~mocapskel.solvers.rules.leaf_hinges.centre_leaf_hinges`), that place is a prior on the centre
-    along the axis: the centre goes the prior's share of the way there.
+    along the axis: the centre goes the prior's share of the way there. With ``like`` (pairs of like limbs'
+    segments, :func:`~mocapskel.solvers.model.joint_map.like_bone_pairs`), two like joints that both measure a
+    half-width use the mean of the two (:func:`like_half_widths`).
     """
+    return _deepen(skel, hinge_ratio, share, like_half_widths(skel, hinge_ratio, like) if like else {})[0]
+
+
+def like_half_widths(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, int]]) -> dict[int, float]:
+    """{joint (its child segment): the mean of its own and its like joint's half-widths}, for the pairs ``like``
+    of like segments whose joints both measure one in :func:`deepen_joints` (measured alone, without moving a
+    joint). A person's left and right knees are as wide as each other, while one limb's measure can rest on a
+    single marker, whose distance from a bone line the start's joints slant: two measures of one width."""
+    width = _deepen(skel, hinge_ratio, None, {})[1]
+    out = {}
+    for x, y in like:
+        if x in width and y in width:
+            out[x] = out[y] = 0.5 * (width[x] + width[y])
+    return out
+
+
+def _deepen(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None,
+            widths: dict[int, float]) -> tuple[Skeleton, dict[int, float]]:
+    """:func:`deepen_joints`, a joint of ``widths`` at that half-width instead of its own; also {joint: its own
+    half-width} where it measured one."""
     R = skel.pose_rot
     vis = None if skel.pose_frames is None else segments_seen(
         skel.marker_segment, len(skel.names), skel.joints.topology.segments.markers.points[skel.pose_frames])
     pos = _rest_markers(skel)
     ok_m = np.isfinite(pos).all(1)
     if ok_m.sum() < 3:
-        return skel
+        return skel, {}
     centre = pos[ok_m].mean(0)
     origin, local = skel.origin.copy(), skel.marker_local.copy()
-    moved = {}
+    moved, measured = {}, {}
     for c in np.flatnonzero(skel.parent >= 0):
         p = int(skel.parent[c])
         if skel.parent[p] < 0 or not (skel.parent == c).any():
@@ -158,6 +181,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
             if got is None:
                 continue
             r, length = got
+            measured[int(c)] = r
+            r = widths.get(int(c), r)
             # over the joint: on the axis, and along it within a limb's reach (where along it the fit
             # put the centre, the markers hardly said)
             on = [m for m in over if off[m] <= r and abs(t[m]) <= max(1.5 * r, 0.25 * length)]
@@ -171,6 +196,6 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
         origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
         moved[skel.names[c]] = round(float(abs(shift)), 1)
     if not moved:
-        return skel
+        return skel, measured
     # hinges between two limbs: none is a child of the root, whose origin stays
-    return _with_moves(skel, origin, local, set(), "deepened", moved)
+    return _with_moves(skel, origin, local, set(), "deepened", moved), measured
