@@ -134,6 +134,28 @@ def test_one_frame_of_gross_errors_does_not_make_the_joints_soft(monkeypatch):
     assert mot.skeleton.info["refined"]["skin_z"] > 3.0 and naive.joint_rms_mm > 2.0 * got.joint_rms_mm
 
 
+def test_the_fit_on_more_frames_leaves_out_its_gross_residuals_before_its_one_fit(monkeypatch):
+    """The same range of motion, four markers 50 mm off in a frame the refinement's 300 do not hold: the fit again on
+    all 1200 frames finds them from the kept fit posed there and leaves them out before it fits, once (a second fit
+    from where the first ended cost the longest real take a third of its time), and its joints are those of the take
+    without the errors to 0.05 mm (measured 1.229 against 1.218)."""
+    import mocapskel.solvers.model.joint_map as joint_map
+
+    take = make(Recipe(kind="human", seed=2, frames=1200, motion="rom", noise_mm=1.0))
+    clean, _ = _score(_joints(take), rigid.Params(joint_model="map"), take.truth)
+    pts = take.markers.points.copy()
+    pts[401, [3, 10, 20, 30]] += np.random.default_rng(0).normal(0, 1, (4, 3)) * 50 / np.sqrt(3)
+    j = _joints(replace(take, markers=replace(take.markers, points=pts)))
+    frames = []
+    fit = joint_map.refine_skeleton
+    monkeypatch.setattr(joint_map, "refine_skeleton", lambda *a, **k: frames.append(a[4].shape[0]) or fit(*a, **k))
+    got, mot = _score(j, rigid.Params(joint_model="map"), take.truth)
+    info = mot.skeleton.info["refined"]
+    assert info["frames"] == 1200 and frames.count(1200) == 1, frames
+    assert info["gross_residuals"] >= 4
+    assert abs(got.joint_rms_mm - clean.joint_rms_mm) < 0.05, (got.joint_rms_mm, clean.joint_rms_mm)
+
+
 def test_prior_sigmas_scale_with_the_segments_reach():
     """Each prior's sigma is the scale times the rms distance of the segment's markers from the joint,
     computed here independently; the root has none."""

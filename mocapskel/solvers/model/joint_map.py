@@ -69,7 +69,7 @@ posterior is kept.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -270,6 +270,16 @@ def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
     return {c: sigma for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
 
 
+@dataclass(frozen=True)
+class _Posed:
+    """A skeleton's offsets and its poses on some frames (as a refinement's result has them)."""
+
+    origin: np.ndarray
+    marker_local: np.ndarray
+    rot: np.ndarray
+    root_pos: np.ndarray
+
+
 def _without_gross(start: Skeleton, res, obs: np.ndarray) -> tuple[np.ndarray, int, float]:
     """(``obs`` with the markers of its gross residuals at ``res`` (:func:`~mocapskel.solvers.model.skin.gross_mask`)
     unseen, how many, the squared length beyond which they are): each costs the posterior that much, as if at the
@@ -304,7 +314,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
     rigid joints. With ``gross``, a fit whose joints stay rigid (the skin test passed) is made again without its gross
-    residuals (:func:`_without_gross`). With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
+    residuals (:func:`_without_gross`); with ``fitted``, they are those of ``fitted`` posed on the new frames, left out
+    before the one fit. With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
     its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
         independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
@@ -364,19 +375,23 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
               like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes, lines=lines)
     base = start
+    obs, n_gross, t2 = None, 0, 0.0
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
         use = refinement_frames(start, more, stride=1)  # noise alone: every frame of a short take adds to the data
         pose = solve(fitted, pts[use], c[use])
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
         base = fitted
+        if gross:  # the fitted skeleton's residual on these frames says which are gross: one fit instead of two
+            obs, n_gross, t2 = _without_gross(start, _Posed(fitted.origin, fitted.marker_local, pose.rot,
+                                                            pose.root_pos), pts[use])
     skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
     if skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z:
         # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
         # soft fit alone
         skin_z, soft, res = skin, _soft_joints(start, soft_sigma), None
     if not soft:
-        res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local, pts[use],
-                              pose.rot, pose.root_pos, **kw)
+        res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local,
+                              pts[use] if obs is None else obs, pose.rot, pose.root_pos, **kw)
     if soft_sigma > 0 and fitted is None and res is not None:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
         # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
@@ -387,8 +402,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                               pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
     before = res.rms[0]
-    n_gross, t2 = 0, 0.0
-    if gross and not soft and skin_z <= SKIN_Z:  # the residual is the noise: what lies far beyond it is no draw of it
+    if gross and not soft and skin_z <= SKIN_Z and fitted is None:  # the residual is the noise: what lies far beyond
+        # it is no draw of it
         obs, n_gross, t2 = _without_gross(start, res, pts[use])
         if n_gross:  # again without them, from where the fit ended
             res = refine_skeleton(start.parent, res.origin, start.marker_segment, res.marker_local, obs, res.rot,
