@@ -23,6 +23,14 @@ from mocapskel.stages import ik as ik_stage
 from mocapskel.stages import rigid
 from mocapskel.synth.presets import Recipe, make
 
+#: Most tests here are of the rules path's moves (deepening, leaf centring, mirror pairs, the held fit): its
+#: parameters, whichever joint model is the default.
+RULES = rigid.Params(joint_model="rules")
+
+
+def rules(**kw) -> rigid.Params:
+    return replace(RULES, **kw)
+
 
 def true_centres(joints, truth) -> np.ndarray:
     """The truth's joint trajectories in the joints artifact's edge order."""
@@ -57,7 +65,7 @@ def exact_two_marker():
     """A noise-free human take with two markers per segment and its exact skeleton."""
     take = make(Recipe(kind="human", seed=4, frames=1200, markers_per_segment=2))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    exact = rigid.run(replace(joints, centres=true_centres(joints, take.truth)), rigid.Params(refine_frames=0))
+    exact = rigid.run(replace(joints, centres=true_centres(joints, take.truth)), rules(refine_frames=0))
     return take, exact
 
 
@@ -113,8 +121,8 @@ def test_track_from_key_poses_solves_every_frame_exactly(exact_two_marker):
 def test_rigid_stage_refines_and_keeps_the_calibration_poses():
     take = make(Recipe(kind="human", seed=5, frames=1200, markers_per_segment=2, noise_mm=0.5))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    plain = rigid.run(joints, rigid.Params(refine_frames=0))
-    refined = rigid.run(joints, rigid.Params(refine_frames=100))
+    plain = rigid.run(joints, rules(refine_frames=0))
+    refined = rigid.run(joints, rules(refine_frames=100))
     assert plain.pose_frames is None and refined.pose_frames is not None
     K = refined.pose_frames.size
     assert refined.pose_rot.shape == (K, len(refined.names), 3, 3) and refined.pose_root.shape == (K, 3)
@@ -147,12 +155,12 @@ def test_rigid_stage_keeps_the_start_that_fits_better():
     assert "jmv" in joints.method and joints.alt_centres is not None
     assert np.array_equal(np.isnan(joints.alt_centres[:, [e for e, m in enumerate(joints.method) if m != "jmv"]]),
                           np.isnan(joints.centres[:, [e for e, m in enumerate(joints.method) if m != "jmv"]]))
-    skel = rigid.run(joints)
+    skel = rigid.run(joints, RULES)
     info = skel.info["refined"]
     starts = info["marker_rms_mm_starts"]  # after a few iterations from each start
     assert info["start"] in starts and starts[info["start"]] == min(v for v in starts.values() if v is not None)
     assert info["marker_rms_mm_after"] <= starts[info["start"]]
-    one = rigid.run(replace(joints, alt_centres=None))
+    one = rigid.run(replace(joints, alt_centres=None), RULES)
     assert "start" not in one.info["refined"]
     assert info["marker_rms_mm_after"] <= one.info["refined"]["marker_rms_mm_after"]
     assert evaluate.score_motion(ik_stage.run(skel), take.truth).joint_rms_mm < 15.0
@@ -219,7 +227,7 @@ def kick():
 
     take = make(realistic(seed=2, frames=600, motion="kick", markerset="cmu41"))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    return take, joints, rigid.run(joints, rigid.Params(joint_depth=False))
+    return take, joints, rigid.run(joints, rules(joint_depth=False))
 
 
 def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it(kick):
@@ -231,7 +239,7 @@ def test_hinges_with_a_marker_over_their_axis_sit_a_limb_half_width_inside_it(ki
     hand) one limb gives the half-width, and so deepened, realistic elbows came out 4-13 mm farther and
     ankles from 20 mm nearer to 67 mm farther from the truth."""
     take, joints, flat = kick
-    deep = rigid.run(joints)
+    deep = rigid.run(joints, RULES)
     moved = deep.info.get("deepened", {})
     assert moved and all(0 < v < 100 for v in moved.values())  # knees, elbows, ankles: tens of mm
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (deep, flat)]
@@ -252,7 +260,7 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     fit): measured from the axis at the marker's level, the half-widths are those of the unslid fit, and
     the knee lands where the unslid one does, one half-width inside its marker and near the truth."""
     take, _, flat = kick
-    deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
+    deep = deepen.deepen_joints(flat, RULES.hinge_ratio)
     moved = {n: v for n, v in deep.info["deepened"].items() if flat.names.index(n) in flat.parent}  # between two limbs
     name = max(moved, key=moved.get)  # the knee the fit left at its marker
     c = flat.names.index(name)
@@ -261,7 +269,7 @@ def test_a_knee_the_fit_slid_along_its_axis_past_its_marker_is_put_inside_it(kic
     local = flat.marker_local.copy()
     local[flat.marker_segment == c] -= d
     slid = replace(flat, origin=flat.origin + np.eye(len(flat.names))[c][:, None] * d, marker_local=local)
-    back = deepen.deepen_joints(slid, rigid.Params().hinge_ratio)
+    back = deepen.deepen_joints(slid, RULES.hinge_ratio)
     assert name in back.info.get("deepened", {}), back.info.get("deepened")
     assert np.linalg.norm(back.origin[c] - deep.origin[c]) < 3.0  # the axis is found again from the slid place
     err = [evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each for s in (back, slid)]
@@ -289,7 +297,7 @@ def test_like_knees_share_their_half_width_when_one_thigh_measures_thin(kick):
     hip = flat.origin[c] + (w - (w @ u) * u) * length / float(w @ u)  # the hip-knee line through the marker
     origin, local = joint_moves._move_joint(flat.origin, flat.marker_local, flat.marker_segment, c, hip - flat.origin[c])
     slanted = replace(flat, origin=origin, marker_local=local)
-    hr = rigid.Params().hinge_ratio
+    hr = RULES.hinge_ratio
     like = like_bone_pairs(slanted)
     other = next(y if x == k else x for x, y in like if k in (x, y))
     alone = deepen._deepen(slanted, hr, None, {})[1]
@@ -328,8 +336,8 @@ def test_the_way_into_the_body_is_what_most_frames_say_not_the_rest_pose(monkeyp
     axis. Judged there, the deepening took the knee 50 mm out of the leg (105 mm from the truth); judged
     by most of the refinement's frames, it takes both knees one half-width inside their markers."""
     joints, knees = rom_cmu
-    flat = rigid.run(joints, rigid.Params(joint_depth=False))
-    hr = rigid.Params().hinge_ratio
+    flat = rigid.run(joints, rules(joint_depth=False))
+    hr = RULES.hinge_ratio
 
     deep = deepen.deepen_joints(flat, hr)
     assert {"seg10", "seg13"} <= set(deep.info["deepened"]), deep.info["deepened"]
@@ -362,7 +370,7 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     measured at either marker's level (taken only at the level of the marker nearest the axis, here
     the medial one, the two limbs disagreed and the knee was not moved at all)."""
     _, _, flat = kick
-    deep = deepen.deepen_joints(flat, rigid.Params().hinge_ratio)
+    deep = deepen.deepen_joints(flat, RULES.hinge_ratio)
     moved = {n: v for n, v in deep.info["deepened"].items() if flat.names.index(n) in flat.parent}
     name = max(moved, key=moved.get)  # the knee the fit left near its lateral marker
     c = flat.names.index(name)
@@ -377,7 +385,7 @@ def test_a_medial_and_a_lateral_knee_marker_put_the_knee_between_them(kick):
     medial = pos[lateral] + 1.4 * half * u
     both = replace(flat, marker_segment=np.append(flat.marker_segment, p),
                    marker_local=np.vstack([flat.marker_local, medial - flat.origin[p]]))
-    got = deepen.deepen_joints(both, rigid.Params().hinge_ratio)
+    got = deepen.deepen_joints(both, RULES.hinge_ratio)
     assert name in got.info.get("deepened", {}), got.info.get("deepened")
     mid = 0.5 * (pos[lateral] + medial)
     want = flat.origin[c] + float((mid - flat.origin[c]) @ u) * u
@@ -395,8 +403,8 @@ def test_the_end_of_a_limb_goes_to_the_middle_of_its_markers_along_its_axis(kick
     forearms carry their markers at the wrist, farther from the joint than the upper arm's, and every
     segment keeps its markers where they were."""
     take, joints, _ = kick
-    on = rigid.run(joints)
-    off = rigid.run(joints, rigid.Params(leaf_centre=False))
+    on = rigid.run(joints, RULES)
+    off = rigid.run(joints, rules(leaf_centre=False))
     moved = on.info.get("leaf_centred", {})
     assert len(moved) == 1 and 10.0 < next(iter(moved.values())) < 60.0, moved
     c = on.names.index(next(iter(moved)))
@@ -415,8 +423,8 @@ def test_an_end_of_limb_hinge_inside_the_limb_stays_one_at_its_marker_goes(kick)
     farther from the marker than from the foot's middle (inside the limb): it stays. Slid out onto the
     marker, it goes back to the foot's middle."""
     _, joints, _ = kick
-    on = rigid.run(joints)
-    off = rigid.run(joints, rigid.Params(leaf_centre=False))
+    on = rigid.run(joints, RULES)
+    off = rigid.run(joints, rules(leaf_centre=False))
     c = on.names.index(next(iter(on.info["leaf_centred"])))
     u = on.origin[c] - off.origin[c]
     step = float(np.linalg.norm(u))
@@ -427,8 +435,8 @@ def test_an_end_of_limb_hinge_inside_the_limb_stays_one_at_its_marker_goes(kick)
         return replace(on, origin=o, marker_local=lc, info={k: v for k, v in on.info.items() if k != "leaf_centred"})
 
     inside = slid(20.0)
-    assert leaf_hinges.centre_leaf_hinges(inside, rigid.Params().hinge_ratio).info.get("leaf_centred") is None
-    out = leaf_hinges.centre_leaf_hinges(slid(-step), rigid.Params().hinge_ratio)
+    assert leaf_hinges.centre_leaf_hinges(inside, RULES.hinge_ratio).info.get("leaf_centred") is None
+    out = leaf_hinges.centre_leaf_hinges(slid(-step), RULES.hinge_ratio)
     assert on.names[c] in out.info["leaf_centred"]
     assert np.linalg.norm(out.origin[c] - on.origin[c]) < 3.0  # back where the first move put it
 
@@ -442,8 +450,8 @@ def test_an_end_of_limb_exercised_in_every_direction_is_left_where_the_motion_pu
     take = make(Recipe(kind="human", seed=2, frames=7200, noise_mm=1.0, soft_tissue_mm=2.0,
                        gaps_per_marker_per_minute=4.0))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    skel = rigid.run(joints, rigid.Params(leaf_centre=False))
-    ratio = rigid.Params().hinge_ratio
+    skel = rigid.run(joints, rules(leaf_centre=False))
+    ratio = RULES.hinge_ratio
     assert leaf_hinges.centre_leaf_hinges(skel, ratio).info.get("leaf_centred") is None
     monkeypatch.setattr(leaf_hinges, "LEAF_PLANAR", 1.0)
     moved = leaf_hinges.centre_leaf_hinges(skel, ratio)
@@ -463,8 +471,8 @@ def test_a_walks_hips_are_put_back_into_the_pelvis_plane_of_symmetry():
 
     take = make(realistic(seed=1, frames=600, motion="walk", markerset="cmu41"))
     joints = pipeline.run_until(take.markers, "joints", pipeline.make_params(up="z", units="mm")).artifact
-    mirrored = rigid.run(joints)
-    plain = rigid.run(joints, rigid.Params(mirror_pairs=False))
+    mirrored = rigid.run(joints, RULES)
+    plain = rigid.run(joints, rules(mirror_pairs=False))
     moved = mirrored.info.get("mirrored", {})
     assert len(moved) == 2 and len(set(moved.values())) == 1 and all(20 < v < 150 for v in moved.values()), moved
     hips = [mirrored.names.index(n) for n in moved]
@@ -606,10 +614,10 @@ def test_a_hip_that_slides_out_of_the_body_is_held():
 
     take = make(realistic(seed=1, frames=600, motion="walk", markerset="gait"))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    skel = rigid.run(joints)
-    assert plausible.outside_joints(skel, rigid.Params().outside) == []
-    free = rigid.run(joints, rigid.Params(outside=10.0, mirror_pairs=False))  # never outside: the slide stays
-    assert plausible.outside_joints(free, rigid.Params().outside)
+    skel = rigid.run(joints, RULES)
+    assert plausible.outside_joints(skel, RULES.outside) == []
+    free = rigid.run(joints, rules(outside=10.0, mirror_pairs=False))  # never outside: the slide stays
+    assert plausible.outside_joints(free, RULES.outside)
     err = {k: evaluate.score_motion(ik_stage.run(s), take.truth).joint_rms_each["LThigh"] for k, s in (("held", skel), ("free", free))}
     assert err["held"] < 150.0 < 250.0 < err["free"], err
 
@@ -627,8 +635,8 @@ def test_a_held_refinement_starts_with_its_joints_where_the_prior_holds_them():
 
     take = make(realistic(seed=1, frames=600, motion="walk", markerset="gait"))
     joints = pipeline.run_until(take.markers, "joints").artifact
-    params = rigid.Params()
-    anchor = rigid.run(joints, rigid.Params(refine_frames=0, mirror_pairs=False, joint_depth=False, leaf_centre=False))
+    params = rules()
+    anchor = rigid.run(joints, rules(refine_frames=0, mirror_pairs=False, joint_depth=False, leaf_centre=False))
     free, hold = refinement._refine_once(anchor, params, None, 0.0)
     bad = plausible.off_the_body(free, params.far, params.outside)
     assert bad, "the free refinement slid no joint off the body"
@@ -661,7 +669,7 @@ def test_a_held_fit_from_the_joints_put_back_falls_back_to_the_free_start(monkey
     against the free fit can fall between them)."""
     from types import SimpleNamespace
 
-    params = rigid.Params()
+    params = rules()
     out, moved = SimpleNamespace(name="free"), SimpleNamespace(name="moved")
     limit = params.refine_iterations
 
@@ -697,9 +705,9 @@ def test_a_hold_that_puts_other_joints_off_the_body_is_not_kept(monkeypatch):
 
     take = hang_chain((4, 3, 3), 300, rng=np.random.default_rng(3), link_length=300.0)
     joints = pipeline.run_until(take.markers, "joints").artifact
-    skel = rigid.run(joints, rigid.Params(refine_frames=0))
+    skel = rigid.run(joints, rules(refine_frames=0))
     leaf = int(np.flatnonzero(skel.parent >= 0)[-1])
-    params = rigid.Params()
+    params = rules()
 
     def fitted(sk, rms):
         return replace(sk, info={**sk.info, "refined": {"marker_rms_mm_after": rms, "iterations": 5}})

@@ -35,7 +35,7 @@ def test_a_range_of_motion_keeps_the_ankles_its_data_fix():
     joints = pipeline.run_until(topo, "joints").artifact
     out = {}
     for on in (False, True):
-        mot = pipeline.run_until(joints, "ik", {"rigid": rigid.Params(moves_by_evidence=on)}).artifact
+        mot = pipeline.run_until(joints, "ik", {"rigid": rigid.Params(joint_model="rules", moves_by_evidence=on)}).artifact
         out[on] = (evaluate.score_motion(mot, take.truth), mot.skeleton.info.get("leaf_centred") or {})
     (rules, moved_rules), (evid, moved_evid) = out[False], out[True]
     assert max(moved_rules.values(), default=0) > 10  # the rule moves an ankle the data fix
