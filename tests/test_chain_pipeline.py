@@ -6,6 +6,11 @@ at rounding level, after the joints stage and after IK, in the configurations th
   jump, and IK made up the last two links for 0.4 s (0.46 of a link off);
 - 300 frames, links of 1 mm: IK's continuity pass took poses within 0.5 mm of the markers as "as good"
   as exact ones, half a link here, in the refinement's spread frames (3e-4 of a link after the fit).
+
+The model path (``--joint-model map``) assumes at least ``NOISE_FLOOR_MM`` of noise, against which its priors pull
+the joints a little even on exact data: 1-2 micrometres here, held under a tenth of that floor. (Its skin test had
+read the priors' tiny pull, a smooth function of the pose, as skin motion, z = 18-21, and made the joints soft: 2-19
+mm off; it now tests against a residual of at least that floor.)
 """
 from __future__ import annotations
 
@@ -16,24 +21,30 @@ import pytest
 
 from mocapskel import evaluate, pipeline
 from mocapskel.io.markers import write_markers
+from mocapskel.solvers.model.joint_map import NOISE_FLOOR_MM
 from mocapskel.stages import clean
 from mocapskel.synth.presets import Recipe, make
 
 LONG_CHAIN = (4, 3, 3, 4, 3, 3, 3, 3)
 
 
+@pytest.mark.parametrize("joint_model", ["rules", "map"])
 @pytest.mark.parametrize("frames,link,seed", [(100, 300.0, 8), (300, 1.0, 7)])
-def test_long_chain_joints_at_rounding_level(tmp_path, frames, link, seed):
+def test_long_chain_joints_at_rounding_level(tmp_path, frames, link, seed, joint_model):
     take = make(Recipe(kind="chain", seed=seed, frames=frames, counts=LONG_CHAIN, link_length=link))
     path = tmp_path / "chain.c3d"
     write_markers(path, replace(take.markers, source=path.name))
-    res = pipeline.fit(path, pipeline.make_params())
+    res = pipeline.fit(path, pipeline.make_params(joint_model=joint_model))
     after_ik = evaluate.score_motion(res.motion, take.truth)
     joints_stage = evaluate.score_joints(res.motion.skeleton.joints, take.truth)
     assert after_ik.segments_ok and after_ik.topology_ok
     assert len(after_ik.joint_rms_each) == len(joints_stage.joint_rms_each) == len(LONG_CHAIN) - 1
-    worst = {k: v / link for k, v in after_ik.joint_rms_each.items()}
-    assert max(worst.values()) < 1e-6, worst
+    if joint_model == "map":
+        assert not res.motion.skeleton.info["refined"]["soft_sigma_mm"]
+        assert max(after_ik.joint_rms_each.values()) < 0.1 * NOISE_FLOOR_MM, after_ik.joint_rms_each
+    else:
+        worst = {k: v / link for k, v in after_ik.joint_rms_each.items()}
+        assert max(worst.values()) < 1e-6, worst
     worst = {k: v / link for k, v in joints_stage.joint_rms_each.items()}
     assert max(worst.values()) < 1e-6, worst
     assert np.isfinite(res.motion.skeleton.joints.centres).all()  # no frame lost

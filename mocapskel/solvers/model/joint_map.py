@@ -396,7 +396,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
         # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
         skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
-                             res.root_pos).z
+                             res.root_pos, noise=NOISE_FLOOR_MM).z
         soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
     if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
         res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],

@@ -86,7 +86,8 @@ class SkinMotion:
 
 
 def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarray, marker_local: np.ndarray,
-                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray, soft: tuple = ()) -> SkinMotion:
+                observed: np.ndarray, rot: np.ndarray, root_pos: np.ndarray, soft: tuple = (),
+                noise: float = 0.0) -> SkinMotion:
     """The residual's part that the joint angles explain, from the take alone (see :class:`SkinMotion`).
 
     parent, marker_segment, origin, marker_local : a skeleton (origins and marker offsets in the rest axes).
@@ -97,6 +98,11 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
     vectors to its parent and children, centred) and their products; the explained variance less what as
     many random regressors explain on average (the adjusted R^2). Markers of a segment without joints, or seen
     in fewer than three times as many frames as there are regressors, are left out.
+
+    ``noise`` (mm, per axis): a floor under the residual. ``z`` tests the explained part against what chance explains of
+    a residual at least that large: a residual below what any optical system resolves (a noise-free take, whose fit
+    leaves only the priors' pull, a smooth function of the pose) shows no skin motion, however well the angles
+    explain it.
     """
     parent = np.asarray(parent)
     marker_segment = np.asarray(marker_segment)
@@ -148,8 +154,9 @@ def skin_motion(parent: np.ndarray, marker_segment: np.ndarray, origin: np.ndarr
             ex = raw - ss * (q - 1) / (n - 1)
             ne = effective_frames(correlation_in_time([(y - X @ beta)[:, None, :]]), np.arange(n))
             if ne > q + 1:
-                z_ex += raw - ss * (q - 1) / (ne - 1)
-                z_var += float(((y * y).sum(0) ** 2).sum()) * 2.0 * (q - 1) * (ne - q) / ((ne - 1) ** 2 * (ne + 1))
+                null = np.maximum((y * y).sum(0), n * noise**2)  # each axis's sum of squares under chance
+                z_ex += raw - float(null.sum()) * (q - 1) / (ne - 1)
+                z_var += float((null**2).sum()) * 2.0 * (q - 1) * (ne - q) / ((ne - 1) ** 2 * (ne + 1))
             seg_ss += ss
             seg_ex += ex
             seg_n += 3 * n
