@@ -202,10 +202,10 @@ class Params:
     hinge's axis, ``hinge_scale``, stays with ``hinge_ratio``'s hinges: a joint the motion fixes is not held there)
     (BENCHMARKS, "The prior's mean without a hinge test")."""
     like_widths: bool = True
-    """With ``joint_model="map"``: the prior mean's deepening gives like limbs' joints (a left and a right knee) the mean
-    of their two limb half-widths, two measures of one width (cmu_16_07's right knee, measured off a thigh marker 4.6 mm
-    from a slanted bone line, 75 -> 46 mm from the reference; the generated halves and the real checking half the same;
-    BENCHMARKS, "Like limbs' half-widths")."""
+    """With ``joint_model="map"``: the prior mean's deepening gives like limbs' joints (a left and a right knee) the
+    mean of their two limb half-widths, two measures of one width (cmu_16_07's right knee, measured off a thigh marker
+    4.6 mm from a slanted bone line, 75 -> 46 mm from the reference; the generated halves and the real checking half
+    the same; BENCHMARKS, "Like limbs' half-widths")."""
     weight_iterations: int = 20
     """With ``data_weight="sandwich"``: the iterations of the first MAP, the one the data's weight is measured at (the
     fit that counts has ``refine_iterations``). Its factor needs no converged MAP: 20 against 60 iterations changed

@@ -13,7 +13,8 @@ size_cs being the rms distance of segment s's markers from the joint at rest (ho
 reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
 hinge with a marker over its axis one limb half-width inside that marker along the axis
 (``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.rules.deepen.deepen_joints`, a surface
-marker sitting outside the bone, as the prior's mean; like limbs' joints at the mean of their two half-widths). The MAP minimises
+marker sitting outside the bone, as the prior's mean; like limbs' joints at the mean of their two
+half-widths). The MAP minimises
 
     (n_eff / n) sum |marker residual|^2 / sigma_n^2 + sum_cs |joint_cs - mean_cs|^2 / sigma_cs^2
         [+ sum_pairs (|bone_x| - |bone_y|)^2 / sigma_b^2] [+ sum_hinges,s (a_c . (joint_cs - mean_cs))^2 / sigma_hs^2]
@@ -402,8 +403,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                               pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
     before = res.rms[0]
-    if gross and not soft and skin_z <= SKIN_Z and fitted is None:  # the residual is the noise: what lies far beyond
-        # it is no draw of it
+    # the residual is the noise: what lies far beyond it is no draw of it (on more frames, left out before the fit)
+    if gross and not soft and skin_z <= SKIN_Z and fitted is None:
         obs, n_gross, t2 = _without_gross(start, res, pts[use])
         if n_gross:  # again without them, from where the fit ended
             res = refine_skeleton(start.parent, res.origin, start.marker_segment, res.marker_local, obs, res.rot,
