@@ -56,7 +56,6 @@ def test_walking_take_finds_the_leg_joints(tmp_path: Path) -> None:
     assert s["bone_err_mm_mean"] <= 12.0, s["bones"]
 
 
-
 def _walk_on_the_model_path(tmp_path: Path, **kw) -> dict:
     """opensim_test_walking fitted on the model path with ``rigid.Params`` ``kw``, scored against its reference."""
     if not (REALREF / "score.py").is_file():
@@ -73,6 +72,7 @@ def _walk_on_the_model_path(tmp_path: Path, **kw) -> dict:
                        capture_output=True, text=True, check=True)
     return json.loads(r.stdout.strip().splitlines()[-1])
 
+
 def test_the_model_paths_knees_lie_in_line_with_hips_and_ankles_on_a_gait_lab_walk(tmp_path: Path) -> None:
     """The same walk on the model path (``joint_model="map"``): no knee markers, lateral thigh and shank clusters, so
     the data leave each knee free along its flexion axis. Lined up with its hip and ankle (``line_sigma``), the right
@@ -84,7 +84,6 @@ def test_the_model_paths_knees_lie_in_line_with_hips_and_ankles_on_a_gait_lab_wa
     assert lined["per_joint_rms_mm"][knee] <= 45.0 < free["per_joint_rms_mm"][knee], (lined, free)
 
 
-
 def test_the_model_paths_prior_mean_deepens_without_a_hinge_test(tmp_path: Path) -> None:
     """The same walk: the prior's mean deepens and centres every joint that qualifies, about the axis it turns about
     most (``mean_ratio=1``), not only those that pass the hinge test: the left ankle 27.0 -> 20.6 mm from the reference,
@@ -93,6 +92,7 @@ def test_the_model_paths_prior_mean_deepens_without_a_hinge_test(tmp_path: Path)
     ankle = next(k for k in untested["per_joint_rms_mm"] if k.startswith("LAJC"))
     assert untested["joints_matched"] == 6 and untested["joint_rms_mean_mm"] <= 29.0, untested["per_joint_rms_mm"]
     assert untested["per_joint_rms_mm"][ankle] <= tested["per_joint_rms_mm"][ankle] - 4.0, (untested, tested)
+
 
 def test_robot_arm_links_between_parallel_axes_within_five_percent(tmp_path: Path) -> None:
     """The Kinova arm: links whose joints are hinges on parallel axes (no centre along the axis) get

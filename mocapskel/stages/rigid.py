@@ -418,7 +418,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     rho = residual_correlation(pts, np.asarray(skel.marker_segment)) if params.data_weight == "effective" else None
 
     model = dict(frames=params.refine_frames, iterations=params.refine_iterations, noise=noise, scale=params.prior_scale,
-                 mean=params.prior_mean, hinge_ratio=params.hinge_ratio, mean_ratio=params.mean_ratio, rho=rho, bone_sigma=params.bone_sigma,
+                 mean=params.prior_mean, hinge_ratio=params.hinge_ratio, mean_ratio=params.mean_ratio, rho=rho,
+                 bone_sigma=params.bone_sigma,
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths)
 

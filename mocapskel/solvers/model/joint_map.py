@@ -70,7 +70,7 @@ posterior is kept.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -271,22 +271,14 @@ def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
     return {c: sigma for c in range(len(skel.names)) if skel.parent[c] >= 0 and min(n[c], n[skel.parent[c]]) >= 3}
 
 
-@dataclass(frozen=True)
-class _Posed:
-    """A skeleton's offsets and its poses on some frames (as a refinement's result has them)."""
-
-    origin: np.ndarray
-    marker_local: np.ndarray
-    rot: np.ndarray
-    root_pos: np.ndarray
-
-
-def _without_gross(start: Skeleton, res, obs: np.ndarray) -> tuple[np.ndarray, int, float]:
-    """(``obs`` with the markers of its gross residuals at ``res`` (:func:`~mocapskel.solvers.model.skin.gross_mask`)
-    unseen, how many, the squared length beyond which they are): each costs the posterior that much, as if at the
-    bound (a truncated quadratic: a swapped or jumping marker is no draw of the noise)."""
+def _without_gross(start: Skeleton, origin: np.ndarray, marker_local: np.ndarray, rot: np.ndarray,
+                   root_pos: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """(``obs`` with the markers of its gross residuals (:func:`~mocapskel.solvers.model.skin.gross_mask`) unseen, how
+    many, the squared length beyond which they are), the residuals of ``start``'s tree with offsets ``origin``,
+    ``marker_local`` posed by ``rot``, ``root_pos``: each costs the posterior that much, as if at the bound (a truncated
+    quadratic: a swapped or jumping marker is no draw of the noise)."""
     pr = _Problem(start.parent, start.marker_segment, obs)
-    _, _, x = pr.fk(res.root_pos, res.rot, pr.offsets(res.origin), res.marker_local)
+    _, _, x = pr.fk(root_pos, rot, pr.offsets(origin), marker_local)
     mask, t2 = gross_mask(obs[:, pr.used] - x)
     if not mask.any():
         return obs, 0, t2
@@ -319,7 +311,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     before the one fit. With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
     its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
-        independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
+    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
     :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
@@ -383,8 +375,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
         base = fitted
         if gross:  # the fitted skeleton's residual on these frames says which are gross: one fit instead of two
-            obs, n_gross, t2 = _without_gross(start, _Posed(fitted.origin, fitted.marker_local, pose.rot,
-                                                            pose.root_pos), pts[use])
+            obs, n_gross, t2 = _without_gross(start, fitted.origin, fitted.marker_local, pose.rot, pose.root_pos,
+                                              pts[use])
     skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
     if skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z:
         # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
@@ -405,7 +397,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     before = res.rms[0]
     # the residual is the noise: what lies far beyond it is no draw of it (on more frames, left out before the fit)
     if gross and not soft and skin_z <= SKIN_Z and fitted is None:
-        obs, n_gross, t2 = _without_gross(start, res, pts[use])
+        obs, n_gross, t2 = _without_gross(start, res.origin, res.marker_local, res.rot, res.root_pos, pts[use])
         if n_gross:  # again without them, from where the fit ended
             res = refine_skeleton(start.parent, res.origin, start.marker_segment, res.marker_local, obs, res.rot,
                                   res.root_pos, **kw)

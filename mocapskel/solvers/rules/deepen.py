@@ -107,8 +107,8 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
 
 def like_half_widths(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, int]]) -> dict[int, float]:
     """{joint (its child segment): the mean of its own and its like joint's half-widths}, for the pairs ``like``
-    of like segments whose joints both measure one in :func:`deepen_joints` (measured alone, without moving a
-    joint). A person's left and right knees are as wide as each other, while one limb's measure can rest on a
+    of like segments whose joints both measure one in :func:`deepen_joints` (as it measures them without this
+    pooling). A person's left and right knees are as wide as each other, while one limb's measure can rest on a
     single marker, whose distance from a bone line the start's joints slant: two measures of one width."""
     width = _deepen(skel, hinge_ratio, None, {})[1]
     out = {}
