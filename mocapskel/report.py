@@ -77,6 +77,19 @@ def build_report(run: Any, params: dict[str, Any]) -> dict:
             for e, (a, b) in enumerate(topo.edges.tolist())
         ]
         warnings.extend(joints.info.get("warnings", []))
+    links = skel.info.get("links", [])
+    if links:
+        rep["links"] = links
+    for k in links:
+        # the joints stage's one joint is now the link's joint with the child; the link's joint with the parent is new
+        for entry in rep.get("joints", []):
+            if entry["parent"] == k["parent"] and entry["child"] == k["child"]:
+                entry.update(parent=k["segment"], link=k["segment"])
+        rep.setdefault("joints", []).append({"parent": k["parent"], "child": k["segment"], "method": "link",
+                                             "residual_mm": None, "link": k["segment"]})
+        warnings.append(f"joint {k['parent']}–{k['child']}: two joints with a link of no markers between them ({k['segment']},"
+                        f" {k['length_mm']:.0f} mm), in place of one joint: one joint left the two segments' motion"
+                        f" {k['one_joint_rms_mm']:.0f} mm rms off one point, the link {k['sphere_rms_mm']:.1f} mm off its sphere")
     rep["bones"] = [
         {"segment": skel.names[s], "parent": skel.names[p] if p >= 0 else None, "length_mm": _f(skel.bone_length[s]),
          "rigid_fit_rms_mm": _f(skel.noise[s])}

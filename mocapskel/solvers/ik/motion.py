@@ -166,11 +166,14 @@ def solve(
 
 
 def _centres_by_edges(skel: Skeleton, centres: np.ndarray) -> np.ndarray:
-    """Reorder joint-centre trajectories from the topology's edge order to ``_edges(skel)`` order."""
+    """Reorder joint-centre trajectories from the topology's edge order to ``_edges(skel)`` order; a joint the
+    topology has no edge for (the two ends of a link of no markers, :mod:`~mocapskel.solvers.model.links`) gets NaN."""
     topo_edges = skel.joints.topology.edges
-    child_to_e = {int(b): e for e, (a, b) in enumerate(topo_edges)}
+    child_to_e = {(int(a), int(b)): e for e, (a, b) in enumerate(topo_edges)}
     kids = np.flatnonzero(skel.parent >= 0)
-    order = [child_to_e[int(k)] for k in kids]
+    order = [child_to_e.get((int(skel.parent[k]), int(k)), -1) for k in kids]
     if order == list(range(centres.shape[1])):  # already in that order (a copy of a whole take saved)
         return centres
-    return centres[:, order]
+    out = centres[:, order]
+    out[:, [i for i, e in enumerate(order) if e < 0]] = np.nan
+    return out

@@ -409,7 +409,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
                        "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z, "gross_residuals": n_gross,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
-                       "prior_sigma_mm": {start.names[k]: [float(x) for x in sig[k]] for k in range(len(start.names))
+                       "prior_sigma_mm": {start.names[k]: [float(x) if np.isfinite(x) else None for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
                    pose_frames=use, pose_rot=res.rot, pose_root=res.root_pos)

@@ -162,16 +162,16 @@ def segment_sizes(parent: np.ndarray, origin: np.ndarray, marker_segment: np.nda
     return out
 
 
-def _frame_points(pr: _Problem, local: np.ndarray, s: int, bones: np.ndarray | None = None
+def _frame_points(pr: _Problem, local: np.ndarray, s: int, bones: np.ndarray | None = None, skip: int = -1
                   ) -> tuple[np.ndarray, list[int]]:
     """Points that make segment ``s``'s frame: its markers (their offsets ``local``), and with ``bones``
-    (S, 3) also its children's joints (their offsets from its origin); (positions (n, 3), each point's
-    first column among the constant unknowns)."""
+    (S, 3) also its children's joints (their offsets from its origin) but child ``skip``'s; (positions (n, 3), each
+    point's first column among the constant unknowns)."""
     ms = [int(m) for m in pr.used if pr.seg[m] == s]
     pos, cols = [local[m] for m in ms], [pr.gl[m] for m in ms]
     if bones is not None:
         for k in pr.kids:
-            if int(pr.parent[k]) == s:
+            if int(pr.parent[k]) == s and k != skip:
                 pos.append(bones[k])
                 cols.append(pr.gi[k])
     return np.array(pos, dtype=float).reshape(-1, 3), cols
@@ -200,12 +200,15 @@ def _frame_segment(pr: _Problem, local: np.ndarray, c: int, bones: np.ndarray) -
     ankle), when those do; else the child's markers. Against a child of one or two markers the joint's
     turn about them is no quantity of the skeleton's (the segment's twist about its markers is a
     convention, and the joint's place about them with it), so that the data, which place the joint from
-    the parent's side, would seem to leave it to the prior."""
+    the parent's side, would seem to leave it to the prior. A child of no markers (a link's) is measured
+    against its parent's markers and other joints when its parent's markers alone make no frame."""
     if _point_frame(_frame_points(pr, local, c)[0])[2] == 3:
         return c, False
     p = int(pr.parent[c])
     if _point_frame(_frame_points(pr, local, p)[0])[2] == 3:
         return p, False
+    if not len(_frame_points(pr, local, c)[0]) and _point_frame(_frame_points(pr, local, p, bones, c)[0])[2] == 3:
+        return p, True  # a link of no markers (mocapskel.solvers.model.links): its parent's markers and other joints
     if _point_frame(_frame_points(pr, local, c, bones)[0])[2] == 3:
         return c, True
     return c, False
@@ -218,7 +221,7 @@ def _joint_operator(pr: _Problem, local: np.ndarray, c: int, s: int | None = Non
     ``with_joints``, the markers and its children's joints; ``bones`` (S, 3) every child's offset from its
     parent's origin; see the module docstring), and how many points define that frame's turn (0, 1, 2 or 3)."""
     s = c if s is None else int(s)
-    pos, first = _frame_points(pr, local, s, bones if with_joints else None)
+    pos, first = _frame_points(pr, local, s, bones if with_joints else None, skip=c)
     cbar, Bp, n = _point_frame(pos)
     A = np.zeros((3, pr.ng))
     if not len(pos):
