@@ -9,6 +9,8 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
 - :mod:`mocapskel.solvers.model.joint_map`: its MAP with explicit Gaussian priors where the
   markers do not fix a joint (``map_refine``, ``noise_sigma``), the rigid stage's
   ``joint_model="map"``;
+- :mod:`mocapskel.solvers.model.links`: two joints with a link of no markers between them, where one joint
+  cannot fit (a robot arm's unmarked link), the model's score choosing;
 - :mod:`mocapskel.solvers.model.uncertainty`: each joint's uncertainty, the Laplace approximation
   at a fitted skeleton (``skeleton_uncertainty``);
 - :mod:`mocapskel.solvers.model.effective` and :mod:`mocapskel.solvers.model.worth`: what the frames are worth,
