@@ -23,9 +23,8 @@ from ..solvers.rules.leaf_hinges import centre_leaf_hinges
 from ..solvers.model.joint_map import SKIN_Z, map_refine, noise_sigma, residual_correlation
 from ..solvers.rules.mirror import centre_mirrored_pairs
 from ..solvers.rules.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
-from ..solvers.model.links import link_of, with_link
-from ..solvers.model.refinement import _refine_once, refine, refinement_frames
-from ..solvers.ik.motion import _centres_by_edges
+from ..solvers.model.links import with_links
+from ..solvers.model.refinement import _refine_once, refine
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
 from ..solvers.model.uncertainty import prior_share_along, skeleton_uncertainty
@@ -206,7 +205,7 @@ class Params:
     links: bool = True
     """With ``joint_model="map"``: a joint the joints stage held where it ran off along a line becomes two joints
     with a link of no markers between them (:mod:`~mocapskel.solvers.model.links`) where the model scores that better
-    (``_with_links``): a robot arm's link that carries no marker."""
+    (:func:`~mocapskel.solvers.model.links.with_links`): a robot arm's link that carries no marker."""
     like_widths: bool = True
     """With ``joint_model="map"``: the prior mean's deepening gives like limbs' joints (a left and a right knee) the
     mean of their two limb half-widths, two measures of one width (cmu_16_07's right knee, measured off a thigh marker
@@ -429,8 +428,9 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths)
 
-    if params.links:
-        starts = _with_links(joints, starts, params, model)
+    if params.links:  # as scored by the first MAP's fit (rigid joints, ``weight_iterations``)
+        starts = with_links(joints, starts, dict(model, iterations=params.weight_iterations, soft_sigma=0.0,
+                                                 gross=False), params.refine_frames)
 
     def one(i: int, soft_sigma: float, inflate: float, kw: dict, skin: list | None):
         c, st = starts[i]
@@ -479,56 +479,6 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
     info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
                            neg_log_posterior_starts=dict(zip(("joints", "framework"), nlp)), data_inflate=kappa)
     return replace(best, info=info)
-
-
-def _with_links(joints: Joints, starts: list, params: Params, model: dict) -> list:
-    """``starts`` [(centres, skeleton)] with a link of no markers (:mod:`~mocapskel.solvers.model.links`) in place of
-    each joint the joints stage held where it ran off along a line (one joint cannot fit there), where the model says
-    so: the first start's MAP with rigid joints (``weight_iterations``) scores lower with the link by more than the
-    Bayesian information criterion charges for it (two turns a frame and the link's length). Each link is tried on top
-    of those kept."""
-    per = joints.info.get("per_joint") or []
-    skel = starts[0][1]
-    cands = []
-    for e, (a, b) in enumerate(joints.topology.edges):
-        if e < len(per) and "held_mm" in per[e]:
-            cands.append(int(b) if skel.parent[int(b)] == int(a) else int(a))
-    if not cands:
-        return starts
-    pts = joints.topology.segments.markers.points
-    use = refinement_frames(skel, params.refine_frames)
-    if use.size < 10:
-        return starts
-    kw = dict(model, iterations=params.weight_iterations, soft_sigma=0.0, gross=False)
-    n_obs = 3 * int(np.isfinite(pts[use][:, skel.marker_segment >= 0]).all(-1).sum())
-    charge = 0.5 * (2 * use.size + 1) * np.log(max(n_obs, 2))
-
-    def score(sk: Skeleton) -> float:
-        return map_refine(sk, starts[0][0], **kw).info.get("refined", {}).get("neg_log_posterior", np.inf)
-
-    nlp = score(skel)
-    kept = []
-    for c in cands:
-        link = link_of(skel, pts[use], _centres_by_edges(skel, starts[0][0])[use], c)
-        if link is None:
-            continue
-        trial = with_link(skel, link)
-        nlp_l = score(trial)
-        if nlp_l + charge < nlp:
-            skel, nlp = trial, nlp_l
-            kept.append(c)
-    if not kept:
-        return starts
-    out = [(starts[0][0], skel)]
-    for cen, sk in starts[1:]:  # the other starts get the same links, each fitted to its own poses
-        for c in kept:
-            link = link_of(sk, pts[use], _centres_by_edges(sk, cen)[use], c)
-            if link is None:
-                break
-            sk = with_link(sk, link)
-        else:
-            out.append((cen, sk))
-    return out
 
 
 def _parts(joints: Joints):

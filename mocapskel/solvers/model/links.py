@@ -6,17 +6,16 @@ pulls the joint far along any line the markers leave free (the joints stage's "f
 take then gets one more segment, with no markers, between the two: its joint with the parent is a point ``a`` fixed
 in the parent, its child's joint a point ``b`` fixed in the child, and the link keeps them ``L`` apart. In the
 parent's frame ``b`` moves on a sphere of radius ``L`` about ``a`` (:func:`fit_link`, a sphere fit on the child's
-motion relative to the parent); the model's own score then chooses between the two models (the rigid stage).
+motion relative to the parent); the model's own score then chooses between the two models (:func:`with_links`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ...artifacts import Skeleton
-from ..ik.motion import _edges
+from ..ik.motion import _centres_by_edges, _edges
 from ..ik.segment_poses import segment_poses
 
 
@@ -44,6 +43,8 @@ def fit_link(Rr: np.ndarray, tr: np.ndarray, b0: np.ndarray, ridge: float = 1e-3
     parallel axes, their common normal, the link length of Denavit and Hartenberg), and ``a`` and ``b`` stay near
     the start (a ``ridge`` ten times weaker: the common normal slides along the axes). Returns (a, b, L, rms off the
     sphere)."""
+    from scipy.optimize import least_squares  # here: importing it costs a third of a second, and few fits need it
+
     ok = np.isfinite(Rr[:, 0, 0]) & np.isfinite(tr).all(1)
     Rr, tr = Rr[ok], tr[ok]
     x0 = Rr @ b0 + tr
@@ -141,3 +142,56 @@ def with_link(skel: Skeleton, link: Link, name: str | None = None) -> Skeleton:
     return replace(skel, names=tuple(skel.names) + (name or f"seg{S:02d}",), parent=parent, origin=origin,
                    marker_local=local, end_site=end, bone_length=np.append(skel.bone_length, 0.0),
                    noise=np.append(skel.noise, 0.0), info=info, pose_frames=None, pose_rot=None, pose_root=None)
+
+
+def with_links(joints, starts: list, model: dict, frames: int) -> list:
+    """``starts`` [(centres, skeleton)] with a link of no markers in place of each joint the joints stage held where it
+    ran off along a line (one joint cannot fit there), where the model says so: the first start's MAP
+    (:func:`~mocapskel.solvers.model.joint_map.map_refine` with ``model``'s keywords, on the refinement's ``frames``)
+    scores lower with the link by more than the Bayesian information criterion charges for it (two turns a frame and
+    the link's length). Each link is tried on top of those kept; the other starts get the same links, each fitted to
+    its own poses."""
+    from .joint_map import map_refine
+    from .refinement import refinement_frames
+
+    per = joints.info.get("per_joint") or []
+    skel = starts[0][1]
+    cands = []
+    for e, (a, b) in enumerate(joints.topology.edges):
+        if e < len(per) and "held_mm" in per[e]:
+            cands.append(int(b) if skel.parent[int(b)] == int(a) else int(a))
+    if not cands:
+        return starts
+    pts = joints.topology.segments.markers.points
+    use = refinement_frames(skel, frames)
+    if use.size < 10:
+        return starts
+    n_obs = 3 * int(np.isfinite(pts[use][:, skel.marker_segment >= 0]).all(-1).sum())
+    charge = 0.5 * (2 * use.size + 1) * np.log(max(n_obs, 2))
+
+    def score(sk: Skeleton) -> float:
+        return map_refine(sk, starts[0][0], **model).info.get("refined", {}).get("neg_log_posterior", np.inf)
+
+    nlp = score(skel)
+    kept = []
+    for c in cands:
+        link = link_of(skel, pts[use], _centres_by_edges(skel, starts[0][0])[use], c)
+        if link is None:
+            continue
+        trial = with_link(skel, link)
+        nlp_l = score(trial)
+        if nlp_l + charge < nlp:
+            skel, nlp = trial, nlp_l
+            kept.append(c)
+    if not kept:
+        return starts
+    out = [(starts[0][0], skel)]
+    for cen, sk in starts[1:]:
+        for c in kept:
+            link = link_of(sk, pts[use], _centres_by_edges(sk, cen)[use], c)
+            if link is None:
+                break
+            sk = with_link(sk, link)
+        else:
+            out.append((cen, sk))
+    return out
