@@ -293,7 +293,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
-               soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True) -> Skeleton:
+               soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True,
+               retest: bool = True) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -313,7 +314,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
     independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
-    :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone. ``soft_fit=False``: the
+    :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone; at or below it, with
+    ``retest=False``, the rigid fit is made and kept without a test of its own. ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
     ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
@@ -385,7 +387,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     if not soft:
         res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local,
                               pts[use] if obs is None else obs, pose.rot, pose.root_pos, **kw)
-    if soft_sigma > 0 and fitted is None and res is not None:
+    if skin is not None and not retest and res is not None:
+        skin_z = skin
+    elif soft_sigma > 0 and fitted is None and res is not None:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
         # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
         skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
