@@ -212,6 +212,9 @@ class Params:
     joints are off shows a residual that follows the joint angles where the better start's does not: on a real full
     body, z 7.9 against 1.8, and a soft fit of one start lost to a rigid fit of the other by 0.2 in 4,066). False:
     each start's own answer, tested again at its second fit."""
+    pose_trust: float = 0.1
+    """With ``joint_model="map"``: the fits' per-frame trust region (rad, ``refine_skeleton``'s ``pose_trust``): a
+    frame whose segments turned more than this in a step is damped four times more in the next. 0: one damping."""
     like_widths: bool = True
     """With ``joint_model="map"``: the prior mean's deepening gives like limbs' joints (a left and a right knee) the
     mean of their two limb half-widths, two measures of one width (cmu_16_07's right knee, measured off a thigh marker
@@ -432,7 +435,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
                  mean=params.prior_mean, hinge_ratio=params.hinge_ratio, mean_ratio=params.mean_ratio, rho=rho,
                  bone_sigma=params.bone_sigma,
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
-                 gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths)
+                 gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths,
+                 pose_trust=params.pose_trust)
 
     if params.links:  # as scored by the first MAP's fit (rigid joints, ``weight_iterations``)
         starts = with_links(joints, starts, dict(model, iterations=params.weight_iterations, soft_sigma=0.0,

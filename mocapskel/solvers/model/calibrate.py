@@ -385,6 +385,7 @@ def refine_skeleton(
     soft: dict[int, float] | None = None,
     planes: list[tuple[tuple[int, ...], np.ndarray, float]] | None = None,
     lines: list[tuple[int, int, np.ndarray, float, float]] | None = None,
+    pose_trust: float = 0.0,
 ) -> CalibrationResult:
     """Refine a skeleton's constant offsets together with the poses of ``observed``'s frames.
 
@@ -425,6 +426,10 @@ def refine_skeleton(
     lines : (k, j, unit axis u at rest, t, weight): joint k (a knee: child segment k) lies, along u, where the line
         from its parent's joint (the hip) to its child j's joint (the ankle) passes at the fraction t of the way:
         weight (whole fit) x ((1 - t) u . d_k - t u . d_j)^2, d the joints' offsets from their parents' origins.
+    pose_trust : rad; a frame whose step turned a segment more than this (beyond where a turn is about linear in its
+        rotation vector) has its damping multiplied by 4 for the next step, and halved back towards the common
+        damping after a step within it: one frame whose pose is nearly free (a segment of two markers whose twist
+        its joints hardly fix) no longer holds the whole fit's damping high. 0: one damping for every frame.
     """
     parent = np.asarray(parent)
     S = len(parent)
@@ -513,10 +518,11 @@ def refine_skeleton(
         if msg[0] == 1:
             # D = L L^T: with Y = L^-1 [Hfg | bf], Hgf D^-1 Hfg = Yg^T Yg and Hgf D^-1 bf = Yg^T Yb,
             # both from Y^T Y over the chunk's frames (see _Problem.eliminate)
-            D = Hff + (msg[1] * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
+            D = Hff + (msg[1] * msg[2][:, None, None] * np.diagonal(Hff, axis1=1, axis2=2)[..., None] + 1e-9) * np.eye(nf)
             YtY, store[j][2] = pr.eliminate(D, X)
             return YtY
-        _, dg1_, lam_ = msg
+        _, dg1_, lam_, k_ = msg
+        lam_ = lam_ * k_[:, None]  # each frame's damping
         h = pr.back_substitute(factors, dg1_)
         # the chunk's share of the decrease the damped linear model predicts (below)
         return h, float(np.einsum("fi,fi->", h, (lam_ * np.diagonal(Hff, axis1=1, axis2=2) + 1e-9) * h - X[..., ng]))
@@ -526,6 +532,7 @@ def refine_skeleton(
         the cores allow): the final (p, R, d, l, cost) and the iterations taken."""
         p, R, d, l, cost = p0, R0, d0, l0, c0
         lam, nu = 1e-4, 2.0
+        kf = np.ones(F)  # each frame's damping, a multiple of lam
         store.clear()
         it = 0
         system = None
@@ -555,12 +562,12 @@ def refine_skeleton(
                 while True:
                     Sg = Hgg + np.diag(lam * np.diag(Hgg) + 1e-9)
                     rhs = -bg.copy()
-                    for YtY in shares.call([(1, lam)] * len(chunks)):  # summed in chunk order
+                    for YtY in shares.call([(1, lam, kf[c_]) for c_ in chunks]):  # summed in chunk order
                         Sg -= YtY[:ng, :ng]
                         rhs += YtY[:ng, ng]
                     dg = np.linalg.solve(Sg, rhs)
                     dg1 = np.append(dg, 1.0)
-                    steps = shares.call([(2, dg1, lam)] * len(chunks))
+                    steps = shares.call([(2, dg1, lam, kf[c_]) for c_ in chunks])
                     df = np.concatenate([h for h, _ in steps])
                     p1 = p + np.hstack([df[:, :3], df[:, 3 + 3 * S :]])
                     R1 = _exp(df[:, 3 : 3 + 3 * S].reshape(F, S, 3)) @ R
@@ -584,6 +591,9 @@ def refine_skeleton(
                 rho = (cost - c1) / pred if pred > 0 else 1.0
                 p, R, d, l, cost = p1, R1, d1, l1, c1
                 system = None
+                if pose_trust > 0:  # a frame that turned beyond its trust region is damped four times more next step
+                    turn = np.linalg.norm(df[:, 3 : 3 + 3 * S].reshape(F, S, 3), axis=-1).max(1)
+                    kf = np.where(turn > pose_trust, 4.0 * kf, np.maximum(0.5 * kf, 1.0))
                 lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-9)
                 nu = 2.0
                 if rel < tol:

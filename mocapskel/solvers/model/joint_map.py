@@ -294,7 +294,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
                soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True,
-               retest: bool = True) -> Skeleton:
+               retest: bool = True, pose_trust: float = 0.0) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -315,7 +315,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
     :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone; at or below it, with
-    ``retest=False``, the rigid fit is made and kept without a test of its own. ``soft_fit=False``: the
+    ``retest=False``, the rigid fit is made and kept without a test of its own. ``pose_trust``: each frame's own damping
+    (``refine_skeleton``'s). ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
     ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
@@ -368,7 +369,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                 placed.add(int(b_) if start.parent[int(b_)] == int(a_) else int(a_))
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
-              like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes, lines=lines)
+              like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes, lines=lines, pose_trust=pose_trust)
     base = start
     obs, n_gross, t2 = None, 0, 0.0
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
