@@ -8,6 +8,7 @@ import pytest
 
 from mocapskel import pipeline
 from mocapskel.artifacts import Markers
+from mocapskel.stages import rigid
 from mocapskel.stages.joints import hold_far_joints
 
 
@@ -47,8 +48,10 @@ def _planar_arm(seed: int, noise: float, frames: int = 900) -> tuple[Markers, np
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_joint_free_along_its_axis_is_held_near_its_markers(seed: int) -> None:
+    """The rules path's hold (``joint_model="rules"``): one joint stands for the two ends of the unmarked link. The
+    model path puts a link there instead (``tests/test_links.py``)."""
     mk, axes = _planar_arm(seed, 0.3)
-    res = pipeline.fit(mk)
+    res = pipeline.fit(mk, {"rigid": rigid.Params(joint_model="rules")})
     rep = res.report
     assert [sorted(s["markers"]) for s in rep["segments"]] == [["B1", "B2", "B3"], ["L1a", "L1b"], ["L3a", "L3b", "L3c"]]
     held = [w for w in rep["warnings"] if "free along a line" in w]
