@@ -96,3 +96,15 @@ def test_a_hinge_the_joints_stage_held_stays_one_joint() -> None:
     per = [dict(p, held_mm=1.0) for p in joints.info["per_joint"]]
     skel = rigid.run(replace(joints, info=dict(joints.info, per_joint=per)), replace(MAP, uncertainty=False))
     assert len(skel.names) == 3 and not skel.info.get("links")
+
+
+def test_the_link_s_segment_takes_a_name_no_segment_has() -> None:
+    """Segment names can have gaps (a segment left out of the skeleton); the link's is the next name free."""
+    from mocapskel.solvers.model.links import Link, with_link
+
+    mk, _ = _planar_arm(0, 0.3)
+    skel = pipeline.run_until(mk, "rigid", {"rigid": replace(MAP, refine_frames=0, uncertainty=False)}).artifact
+    skel = replace(skel, names=("seg00", "seg03", "seg01"))
+    c = int(np.flatnonzero(skel.parent >= 0)[0])
+    got = with_link(skel, Link(child=c, a=np.zeros(3), b=np.zeros(3), length=0.0, rms=0.0, ball_rms=0.0))
+    assert got.names[-1] == "seg04" and len(set(got.names)) == 4 and got.info["links"][0]["segment"] == "seg04"

@@ -126,6 +126,8 @@ def with_link(skel: Skeleton, link: Link, name: str | None = None) -> Skeleton:
     c = link.child
     p = int(skel.parent[c])
     S = len(skel.names)
+    if name is None:  # the next free segment name (names can have gaps where segments were left out)
+        name = next(f"seg{k:02d}" for k in range(S, S + len(skel.names) + 1) if f"seg{k:02d}" not in skel.names)
     origin = np.vstack([skel.origin, skel.origin[p] + link.a])
     origin[c] = skel.origin[c] + link.b
     parent = np.append(skel.parent, p)
@@ -137,9 +139,9 @@ def with_link(skel: Skeleton, link: Link, name: str | None = None) -> Skeleton:
         end[c] = skel.end_site[c] - link.b
     info = dict(skel.info)
     info["links"] = list(info.get("links", [])) + [{
-        "segment": name or f"seg{S:02d}", "parent": skel.names[p], "child": skel.names[c],
+        "segment": name, "parent": skel.names[p], "child": skel.names[c],
         "length_mm": round(link.length, 1), "sphere_rms_mm": round(link.rms, 2), "one_joint_rms_mm": round(link.ball_rms, 1)}]
-    return replace(skel, names=tuple(skel.names) + (name or f"seg{S:02d}",), parent=parent, origin=origin,
+    return replace(skel, names=tuple(skel.names) + (name,), parent=parent, origin=origin,
                    marker_local=local, end_site=end, bone_length=np.append(skel.bone_length, 0.0),
                    noise=np.append(skel.noise, 0.0), info=info, pose_frames=None, pose_rot=None, pose_root=None)
 
