@@ -31,19 +31,8 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
     segments and frames at once (:func:`~mocapskel.solvers.ik.segment_poses`).
     """
     F, M = points.shape[:2]
-    S = len(skel.names)
     root = int(np.flatnonzero(skel.parent < 0)[0])
-    edges = _edges(skel)
-    shapes, columns = [], []
-    for s in range(S):
-        mids = np.flatnonzero(skel.marker_segment == s)
-        ref, cols = [skel.origin[s] + skel.marker_local[mids]], [mids]
-        if centres is not None:
-            eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
-            ref.append(skel.origin[edges[eids, 1]])
-            cols.append(M + eids)
-        shapes.append(np.concatenate(ref))
-        columns.append(np.concatenate(cols))
+    shapes, columns = segment_shapes(skel, range(len(skel.names)), M, centres is not None)
     rot, t = segment_poses(shapes, columns, [points] if centres is None else [points, centres])
     ok = np.isfinite(rot[..., 0, 0])  # (F, S)
     root_pos = np.full((F, 3), np.nan)
@@ -67,6 +56,24 @@ def initial_pose(skel: Skeleton, points: np.ndarray, centres: np.ndarray | None)
             raise DataError("the root segment is never seen — cannot place the skeleton", None)
         root_pos = _interp_frames(root_pos, fr)
     return rot, root_pos
+
+
+def segment_shapes(skel: Skeleton, segments, M: int, joints: bool) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each of ``segments``' rest points (its markers, and with ``joints`` the centres of its joints, lab axes at the
+    rest frame) and their columns among ``M`` markers followed by the joint centres in ``_edges(skel)`` order: the
+    shapes :func:`~mocapskel.solvers.ik.segment_poses.segment_poses` poses."""
+    edges = _edges(skel)
+    shapes, columns = [], []
+    for s in segments:
+        mids = np.flatnonzero(skel.marker_segment == s)
+        ref, cols = [skel.origin[s] + skel.marker_local[mids]], [mids]
+        if joints:
+            eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
+            ref.append(skel.origin[edges[eids, 1]])
+            cols.append(M + eids)
+        shapes.append(np.concatenate(ref))
+        columns.append(np.concatenate(cols))
+    return shapes, columns
 
 
 def _interp_frames(x: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...artifacts import Skeleton
-from ..ik.motion import _centres_by_edges, _edges
+from ..ik.motion import _centres_by_edges, _edges, segment_shapes
 from ..ik.segment_poses import segment_poses
 
 
@@ -79,16 +79,9 @@ def cut_poses(skel: Skeleton, points: np.ndarray, centres: np.ndarray, child: in
     centres (``centres`` (F, K, 3) in ``_edges(skel)`` order), not from the joint between them: (R (F, 2, 3, 3),
     t (F, 2, 3)) with a rest point ``v`` (lab axes at the rest frame) at ``R v + t``; NaN where a pose is not fixed
     (fewer than three points, or in a line)."""
-    edges = _edges(skel)
     cen = centres.copy()
-    cen[:, np.flatnonzero(edges[:, 1] == child)] = np.nan
-    M = points.shape[1]
-    shapes, columns = [], []
-    for s in (int(skel.parent[child]), child):
-        mids = np.flatnonzero(skel.marker_segment == s)
-        eids = np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s))
-        shapes.append(np.concatenate([skel.origin[s] + skel.marker_local[mids], skel.origin[edges[eids, 1]]]))
-        columns.append(np.concatenate([mids, M + eids]))
+    cen[:, np.flatnonzero(_edges(skel)[:, 1] == child)] = np.nan
+    shapes, columns = segment_shapes(skel, (int(skel.parent[child]), child), points.shape[1], True)
     return segment_poses(shapes, columns, [points, cen], collinear_tol=1e-3)
 
 
