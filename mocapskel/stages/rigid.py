@@ -225,6 +225,12 @@ class Params:
     fit that counts has ``refine_iterations``). Its factor needs no converged MAP: 20 against 60 iterations changed
     4 of 174 generated rows by 0.2 mm at most and saved 1-5 s on the longest real takes (BENCHMARKS, "The model
     path's time")."""
+    mean_within: bool = True
+    """With ``joint_model="map"``: the prior's mean of a joint the estimators left beyond all of its two segments'
+    markers along the axis it turns about most is brought back to the nearest of them, or a limb half-width beyond it
+    (:func:`~mocapskel.solvers.model.joint_map.within_markers`): along that axis the markers do not place a joint, and
+    the gait set's found groupings had knees 395-446 mm out of the leg there (checking half 95.0 -> 67.9 mm, tuning
+    64.8 -> 64.3, true groupings and the real checking half the same; BENCHMARKS, "A joint's prior within its limb")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -436,7 +442,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
                  bone_sigma=params.bone_sigma,
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths,
-                 pose_trust=params.pose_trust)
+                 pose_trust=params.pose_trust, within=params.mean_within)
 
     if params.links:  # as scored by the first MAP's fit (rigid joints, ``weight_iterations``)
         starts = with_links(joints, starts, dict(model, iterations=params.weight_iterations, soft_sigma=0.0,

@@ -78,13 +78,13 @@ from ...artifacts import Skeleton
 from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import _Problem, refine_skeleton
 from .effective import correlation_in_time, effective_frames
-from ..rules.deepen import deepen_joints
+from ..rules.deepen import _half_width, deepen_joints
 from ..rules.leaf_hinges import centre_leaf_hinges
 from ..rules.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from .skin import gross_mask, skin_motion
-from ..joint_moves import _move_joint
+from ..joint_moves import _move_joint, _with_moves
 from ..rest_pose import _bone_line, _rest_groups, _rest_markers
 from ..rigid_shape import procrustes_shape
 from ..joints.hinges import _hinge_direction, _relative_rotations
@@ -220,6 +220,49 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
     return replace(skel, origin=origin, marker_local=local)
 
 
+def within_markers(skel: Skeleton, ratio: float, skip: set[str]) -> Skeleton:
+    """``skel`` with every joint (but those named in ``skip``) whose place along the axis it turns about most lies
+    beyond all of its two segments' markers along that axis brought back to the nearest of them, or to one limb
+    half-width beyond it where the two limbs measure one (:func:`~mocapskel.solvers.rules.deepen._half_width`: a knee
+    whose markers are all lateral lies that far inside them), each segment's markers kept where they are; the prior's
+    mean there.
+
+    Along the axis a joint turns about the markers hardly place it, and an estimator's answer there is anywhere (a
+    generated walk's knee, its shank and foot grouped as one segment, 430 mm out along its flexion axis). Wherever
+    a joint is along that axis, it lies within the limb: not beyond every marker of the two segments it joins.
+    ``ratio``: the hinge test of :func:`_hinge_direction` (1: every joint, about the axis it turns about most)."""
+    if skel.pose_rot is None or skel.pose_frames is None:
+        return skel
+    seen = segments_seen(skel.marker_segment, len(skel.names), skel.joints.topology.segments.markers.points[skel.pose_frames])
+    pos, seg, _ = _rest_groups(skel)
+    origin, local = skel.origin.copy(), skel.marker_local.copy()
+    moved: dict[str, float] = {}
+    kids = set()
+    for c in np.flatnonzero(skel.parent >= 0):
+        c = int(c)
+        p = int(skel.parent[c])
+        if skel.names[c] in skip:
+            continue
+        m = pos[(seg == p) | (seg == c)]
+        rel = _relative_rotations(skel.pose_rot, p, c, seen)
+        if len(m) < 2 or rel is None:
+            continue
+        line = _bone_line(skel, c)
+        ax = _hinge_direction(rel, ratio, None if line is None else line[1])
+        if ax is None:
+            continue
+        t = (m - origin[c]) @ ax
+        shift = float(t.min()) if t.min() > 0 else float(t.max()) if t.max() < 0 else 0.0
+        if shift:  # up to a limb half-width beyond them, where the two limbs measure one (a knee marked laterally)
+            hw = _half_width(skel, origin, c, origin[c] + shift * ax, pos, set())
+            shift = float(np.sign(shift)) * max(abs(shift) - (hw[0] if hw else 0.0), 0.0)
+        if shift:
+            origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
+            moved[skel.names[c]] = round(abs(shift), 1)
+            kids.add(c)
+    return _with_moves(skel, origin, local, kids, "within_markers", moved) if moved else skel
+
+
 #: A limb's middle joint lies between its neighbours, at least this fraction of the way from either: a limb's two
 #: long bones are within a factor of 3 of each other's length (thigh and shank, upper arm and forearm: 0.45-0.55 of
 #: the way). A found tree whose "limb" is a head carrying an arm put its shoulder 0.07 of the way from the neck.
@@ -294,7 +337,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
                soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True,
-               retest: bool = True, pose_trust: float = 0.0) -> Skeleton:
+               retest: bool = True, pose_trust: float = 0.0, within: bool = False) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -335,6 +378,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                                like=like_bone_pairs(start) if like_widths else None)
     if mean == "deepened+leaf":
         centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
+    if within:  # joints the estimators left beyond their markers along their axis
+        centre = within_markers(centre, ratio, set(centre.info.get("deepened", {})) | set(centre.info.get("leaf_centred", {})))
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
@@ -412,7 +457,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": before,
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
-                       "prior_scale": scale, "neg_log_posterior": nlp, "skin_z": skin_z, "gross_residuals": n_gross,
+                       "prior_scale": scale, "neg_log_posterior": nlp, "mean_within_mm": dict(centre.info.get("within_markers", {})), "skin_z": skin_z, "gross_residuals": n_gross,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
                        "prior_sigma_mm": {start.names[k]: [float(x) if np.isfinite(x) else None for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
