@@ -183,7 +183,7 @@ def make_params(
     *,
     segments: int | None = None,
     joint_method: str = "auto",
-    joint_model: str = "rules",
+    joint_model: str = "map",
     rest_frame: int | None = None,
     up: str = "y",
     units: str = "cm",

@@ -43,8 +43,8 @@ def fit_options(f):
     """Options that set stage parameters (segments, joints, rest frame)."""
     f = click.option("--rest-frame", type=click.IntRange(min=0), default=None, help="Frame whose pose is the rest pose [default: a well-visible frame near the start].")(f)
     f = click.option(
-        "--joint-model", type=click.Choice(JOINT_MODELS), default="rules", show_default=True,
-        help="How the rigid stage places the joints: its rules, or the model's MAP with explicit priors (being compared).",
+        "--joint-model", type=click.Choice(JOINT_MODELS), default="map", show_default=True,
+        help="How the rigid stage places the joints: the model's MAP with explicit priors, or the older rules (kept for comparison).",
     )(f)
     f = click.option(
         "--joint-method", type=click.Choice(JOINT_METHODS), default="auto", show_default=True, help="Joint-centre estimator."

@@ -108,12 +108,11 @@ class Params:
     hold_weight: float = 0.01
     """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
     wherever they fix the position."""
-    joint_model: str = "rules"
-    """``"rules"``: the refinement, the held fit and the moves above. ``"map"``: the refinement is the
-    model's MAP with an explicit Gaussian prior on every joint (see
+    joint_model: str = "map"
+    """``"map"`` (default): the refinement is the model's MAP with an explicit Gaussian prior on every joint (see
     :mod:`~mocapskel.solvers.model.joint_map`), and nothing is moved after it; of the starts (the joints
-    stage's centres and its second estimate), the one of lowest negative log posterior is kept.
-    ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
+    stage's centres and its second estimate), the one of lowest negative log posterior is kept. ``"rules"``: the refinement, the
+    held fit and the moves above, kept for comparison; with ``"map"``, ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
     ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
     rigid_frames: int = 1800
     """With ``joint_model="map"``: where the kept start's MAP has rigid joints (its residual does not follow the joint

@@ -1,8 +1,8 @@
 """Hand-made placement rules, kept beside the skeleton model until it replaces them.
 
 They move joints after a fit or choose between fits by tests, where the model
-(:mod:`mocapskel.solvers.model`) is to say the same with a prior and a score. The rigid stage's
-default ``joint_model="rules"`` applies them:
+(:mod:`mocapskel.solvers.model`) says the same with a prior and a score. The rigid stage's
+``joint_model="rules"``, no longer the default, applies them:
 
 - :mod:`mocapskel.solvers.rules.mirror`: like limbs' first joints moved into their parent's plane
   of symmetry (``centre_mirrored_pairs``);
