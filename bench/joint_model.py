@@ -1,11 +1,10 @@
-"""Rules against the model: the rigid stage's joints by its rules (``joint_model="rules"``) and by the
-model's MAP with explicit priors (``joint_model="map"``), side by side.
+"""The model's variants side by side: the rigid stage's joints by the model's MAP with explicit priors, as it is
+(``model``) and with some of its terms set otherwise (``WEIGHTS``), at several prior scales.
 
     python -m bench.joint_model                       # markdown to stdout (slow: every case, both halves)
     python -m bench.joint_model --tune                # the prior's scale on the tuning seeds only
     python -m bench.joint_model --tune --markerset gait   # the realistic takes with a gait lab's marker set
     python -m bench.joint_model --json --case realistic rom 1 --scales 0.5   # one case (internal)
-    python -m bench.joint_model --compact RAW.json 0.1   # rules against one scale, from a --raw file
 
 Generated cases are scored against their ground truth: joint rms over frames and joints (mean) and the
 worst joint's rms, after IK. Each is fitted twice from the same joints stage: with the true grouping and
@@ -52,30 +51,14 @@ WEIGHTS = {"map": ("frames", "deepened", 0.0), "map-eff": ("effective", "deepene
            "map-soft-60": ("frames", "deepened+leaf", 0.03, 0.01, False, 60.0),
            "map-mirror": ("frames", "deepened+leaf", 0.03, 0.01, False, 15.0, True),
            "map-soft-placed": ("frames", "deepened+leaf", 0.03, 0.01, True, 15.0)}
-#: the rules path with its moves switched off, one at a time and all together (an ablation): ``rigid.Params`` fields
-ABLATIONS = {
-    "rules": {},
-    "no-mirror": {"mirror_pairs": False},
-    "no-depth": {"joint_depth": False},
-    "no-leaf": {"leaf_centre": False},
-    "no-hinge-hold": {"hold_hinges": False},
-    # the held refinement's triggers (a joint off the body, or slid); collapsed like-limb joints still trigger it
-    "no-held-fit": {"far": 1e9, "outside": 1e9, "slide": 1e9},
-    # the depth and leaf-centre moves as priors along the axis, weighed against the data (rigid.Params.moves_by_evidence)
-    "evidence": {"moves_by_evidence": True},
-    "no-moves": {"mirror_pairs": False, "joint_depth": False, "leaf_centre": False, "hold_hinges": False,
-                 "far": 1e9, "outside": 1e9, "slide": 1e9},
-}
-#: the variants measured (``--variants``; "rules" and the ablations are the rules path; "model" the model path with
+#: the variants measured (``--variants``; "model" the model path with
 #: ``rigid.Params``' own defaults, whatever they are now)
-VARIANTS = ["rules", "model"]
+VARIANTS = ["model"]
 
 
 def _rigid(mode: str, scale: float):
     from mocapskel.stages import rigid
 
-    if mode in ABLATIONS:
-        return rigid.Params(joint_model="rules", **ABLATIONS[mode])
     if mode == "model":
         return rigid.Params(joint_model="map", prior_scale=scale)
     w, mean, bone, *hinge = WEIGHTS[mode]
@@ -85,8 +68,7 @@ def _rigid(mode: str, scale: float):
 
 
 def _modes(scales: list[float]) -> list[tuple[str, str, float]]:
-    return [(v, v, 0.5) for v in VARIANTS if v in ABLATIONS] + [
-        (f"{v} {s:g}", v, s) for v in VARIANTS if v not in ABLATIONS for s in scales]
+    return [(f"{v} {s:g}", v, s) for v in VARIANTS for s in scales]
 
 
 def _vargs() -> list[str]:
@@ -211,29 +193,6 @@ def summary(raw: dict, scales: list[float]) -> str:
     return table(["case", "seeds", "grouping and tree"] + [f"{m} {k} (mm)" for m in modes for k in ("mean", "worst")], rows)
 
 
-def compact(raw: dict, scale: float) -> str:
-    """Rules against the model at one prior scale: per case and grouping, the tuning and checking halves'
-    mean over seeds of the joint rms (mean over joints, and the worst joint's)."""
-    # the model path as it is ("model"), or a raw file of the variant measured before it had that name
-    name = "model" if any(f"model {scale:g}" in t for v in raw.values() for t in v.values()) else "map"
-    m = f"{name} {scale:g}"
-    rows = []
-    for case in dict.fromkeys(k.rsplit(" ", 1)[0] for k in raw):
-        for tree in ("true", "auto"):
-            row = [case, "given" if tree == "true" else "found"]
-            for seeds in (TUNE, CHECK):
-                got = [raw[f"{case} {s}"][tree] for s in seeds if f"{case} {s}" in raw]
-                for mode in ("rules", m):
-                    ok = [g[mode] for g in got if "error" not in g and "error" not in g[mode]]
-                    fail = "" if len(ok) == len(got) else f" ({len(got) - len(ok)} failed)"
-                    row += [f"{np.mean([o['mean'] for o in ok]):.1f}{fail}" if ok else "error",
-                            f"{np.mean([o['worst'] for o in ok]):.0f}" if ok else ""]
-            rows.append(row)
-    head = ["case", "grouping and tree"] + [f"{h}: {mode} {k}" for h in ("tuning 1-3", "checking 4-6")
-                                           for mode in ("rules", name) for k in ("mean (mm)", "worst joint (mm)")]
-    return table(head, rows)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--json", action="store_true")
@@ -244,22 +203,17 @@ def main() -> None:
     ap.add_argument("--tune", action="store_true", help="the tuning seeds only, several scales")
     ap.add_argument("--real-only", action="store_true", help="the real takes only")
     ap.add_argument("--raw", default=None, help="write the per-case JSON here too")
-    ap.add_argument("--compact", nargs=2, metavar=("RAW", "SCALE"), help="the rules-against-map table from a --raw file")
-    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=[*ABLATIONS, *WEIGHTS, "model"],
-                    help="the paths measured: rules, map (every frame independent), map-eff (effective frames), "
-                         "map-eff-start (effective frames, the prior centred on the joints stage's joints), "
-                         "map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, like limbs); "
-                         "no-mirror, no-depth, no-leaf, no-hinge-hold, no-held-fit, no-moves: the rules path without "
-                         "that move (no-moves: without any); evidence: the depth and leaf moves weighed against the data")
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=[*WEIGHTS, "model"],
+                    help="the variants measured: model (rigid.Params' defaults), map (every frame independent), map-eff "
+                         "(effective frames), map-eff-start (effective frames, the prior centred on the joints stage's "
+                         "joints), map-eff-like (effective frames, like limbs' bones within 3 %%), map-like (every frame, "
+                         "like limbs), and the others of WEIGHTS")
     ap.add_argument("--motions", nargs="+", default=None, help="the realistic motions only (and no rom48 unless named)")
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
     ap.add_argument("--markerset", choices=["cmu41", "gait", "cluster"], default="cmu41",
                     help="the realistic takes' marker set (gait, cluster: without the 48-marker range of motion)")
     a = ap.parse_args()
     VARIANTS[:] = a.variants
-    if a.compact:
-        print(compact(json.loads(Path(a.compact[0]).read_text()), float(a.compact[1])))
-        return
     if a.case:
         print(json.dumps(generated_case(a.case[0], a.case[1], int(a.case[2]), a.scales)))
         return

@@ -1,8 +1,8 @@
 """Real takes whose labels name anatomical landmarks: joint centres by the standard definitions, and the fit
-scored against them, the rules and the model path side by side.
+scored against them, the model's variants side by side.
 
     python -m bench.realanat                           # markdown to stdout (a note when the folder is absent)
-    python -m bench.realanat --variants rules map '{"data_weight": "effective"}'   # rigid.Params as JSON
+    python -m bench.realanat --variants map '{"data_weight": "effective"}'   # rigid.Params as JSON
     python -m bench.realanat --raw RAW.json            # also every joint's error
 
 The labels are read by this bench alone, to make the references; the fit never sees what they mean. The
@@ -128,17 +128,15 @@ def one_take(args: tuple[str, list[tuple[str, dict]]]) -> tuple[str, dict]:
 
 
 def _variant(text: str) -> tuple[str, dict]:
-    if text in ("rules", "map"):
-        return text, {"joint_model": text}
-    kw = json.loads(text)
-    kw.setdefault("joint_model", "map")
-    return text, kw
+    if text == "map":
+        return text, {}
+    return text, json.loads(text)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--variants", nargs="+", default=["rules", "map"],
-                    help="rules, map, or rigid.Params keywords as JSON (the model path unless joint_model says)")
+    ap.add_argument("--variants", nargs="+", default=["map"],
+                    help="map (rigid.Params' defaults), or rigid.Params keywords as JSON")
     ap.add_argument("--takes", nargs="+", default=list(TAKES), help="takes under ../shared/realdata/")
     ap.add_argument("--raw", help="write every score here (JSON)")
     a = ap.parse_args()

@@ -50,20 +50,18 @@ def main() -> None:
                              len(d_.get("segments_moved", [])), len(d_.get("segments_split", [])),
                              round(d_["ik"]["marker_rms_mm"], 1),
                              round(ref["marker_rms_mm_after"], 1) if ref else "",
-                             ", ".join(f"{v:g}" for v in (ref.get("mirrored_mm") or {}).values()),
-                             ", ".join(f"{v:g}" for v in (ref.get("deepened_mm") or {}).values()),
-                             ", ".join(f"{v:g}" for v in (ref.get("leaf_centred_mm") or {}).values()),
+                             ", ".join(f"{v:g}" for v in (ref.get("mean_within_mm") or {}).values()),
                              len(d_.get("warnings", [])), round(wall, 1)])
             else:
                 err = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
-                rows.append([rel, f"exit {r.returncode}: {err.split(': ', 2)[-1][:90]}", "", "", "", "", "", "", "", "", "", "",
-                             "", round(wall, 1)])
+                rows.append([rel, f"exit {r.returncode}: {err.split(': ', 2)[-1][:90]}", "", "", "", "", "", "", "", "", "",
+                             round(wall, 1)])
         print(f"  {rows[-1]}", file=sys.stderr)
     print("Every take of `../shared/realdata/` (see its README), `mocapskel fit TAKE -o out.bvh --no-cache` in a "
           "fresh process. IK rms: marker rms residual of the fitted skeleton over the take; refined: the same on the "
-          "refinement's frames. Markers moved: markers the segment stage gave a place after the rigid grouping (a marker on a joint axis, or skin on its nearest group); groups split: groups that kept their distances but did not move as one body, split in two. Mirrored: the steps (mm) that put like limbs' joints into their parent's plane of symmetry (`refinement.mirrored_mm`). Deepened: the moves (mm) that put hinges between two limbs a limb half-width inside the marker over their axis (`refinement.deepened_mm`). Leaf-centred: the moves (mm) that put the joints at the ends of limbs at the middle of their markers along their axis (`refinement.leaf_centred_mm`). Warnings: the report's warnings, the output checks' findings among them (`python -m bench.checks` counts those by check).\n")
+          "refinement's frames. Markers moved: markers the segment stage gave a place after the rigid grouping (a marker on a joint axis, or skin on its nearest group); groups split: groups that kept their distances but did not move as one body, split in two. Within the limb: joints whose prior's mean was brought back within their limb along their axis, by how much (mm, `refinement.mean_within_mm`). Warnings: the report's warnings, the output checks' findings among them (`python -m bench.checks` counts those by check).\n")
     print(table(["take", "result", "frames", "markers", "segments", "markers moved", "groups split", "IK rms (mm)",
-                 "refined rms (mm)", "mirrored (mm)", "deepened (mm)", "leaf-centred (mm)", "warnings",
+                 "refined rms (mm)", "within the limb (mm)", "warnings",
                  "wall (s)"], rows))
 
 

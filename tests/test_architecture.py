@@ -5,7 +5,7 @@ functions alike, and checks that data flows one way: stages call solvers and the
 the command line or file I/O; solvers need nothing but numpy/scipy, other solvers and the model (its
 data types in ``artifacts.py`` included) and the error types; no import circle anywhere; no module over
 700 lines; the solvers' folders by concern import one another one way, each says what it holds and
-imports nothing itself, and only the model and the rigid stage use the placement rules.
+imports nothing itself, and only the model uses the priors' geometry.
 """
 from __future__ import annotations
 
@@ -150,7 +150,7 @@ def _solver_node(module: str) -> str | None:
 
 def test_the_solvers_are_in_folders_that_say_what_they_hold() -> None:
     folders = sorted(p for p in (PACKAGE / "solvers").iterdir() if p.is_dir() and (p / "__init__.py").is_file())
-    assert {"model", "joints", "ik", "rules"} <= {p.name for p in folders}
+    assert {"model", "joints", "ik", "priors"} <= {p.name for p in folders}
     for p in folders:
         init = p / "__init__.py"
         tree = ast.parse(init.read_text())
@@ -173,9 +173,9 @@ def test_the_solver_folders_import_one_another_one_way() -> None:
     assert not cycles, f"solver folders that import each other: {cycles}"
 
 
-def test_only_the_model_and_the_rigid_stage_use_the_placement_rules() -> None:
-    """The rules are kept beside the model until it replaces them: nothing else may come to rely on them."""
-    rules = f"{SOLVERS}.rules"
-    users = {m for m, deps in GRAPH.items() if any(_within(d, (rules,)) for d in deps) and not _within(m, (rules,))}
-    assert users, "nothing imports the rules: remove the folder"
-    assert all(_within(m, (f"{SOLVERS}.model", "mocapskel.stages.rigid")) for m in users), sorted(users)
+def test_only_the_model_uses_the_priors_geometry() -> None:
+    """Where the priors put a joint the data leave free is the model's: nothing else may move joints by it."""
+    priors = f"{SOLVERS}.priors"
+    users = {m for m, deps in GRAPH.items() if any(_within(d, (priors,)) for d in deps) and not _within(m, (priors,))}
+    assert users, "nothing imports the priors' geometry: remove the folder"
+    assert all(_within(m, (f"{SOLVERS}.model",)) for m in users), sorted(users)

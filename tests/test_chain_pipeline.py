@@ -28,23 +28,18 @@ from mocapskel.synth.presets import Recipe, make
 LONG_CHAIN = (4, 3, 3, 4, 3, 3, 3, 3)
 
 
-@pytest.mark.parametrize("joint_model", ["rules", "map"])
 @pytest.mark.parametrize("frames,link,seed", [(100, 300.0, 8), (300, 1.0, 7)])
-def test_long_chain_joints_at_rounding_level(tmp_path, frames, link, seed, joint_model):
+def test_long_chain_joints_at_rounding_level(tmp_path, frames, link, seed):
     take = make(Recipe(kind="chain", seed=seed, frames=frames, counts=LONG_CHAIN, link_length=link))
     path = tmp_path / "chain.c3d"
     write_markers(path, replace(take.markers, source=path.name))
-    res = pipeline.fit(path, pipeline.make_params(joint_model=joint_model))
+    res = pipeline.fit(path, pipeline.make_params())
     after_ik = evaluate.score_motion(res.motion, take.truth)
     joints_stage = evaluate.score_joints(res.motion.skeleton.joints, take.truth)
     assert after_ik.segments_ok and after_ik.topology_ok
     assert len(after_ik.joint_rms_each) == len(joints_stage.joint_rms_each) == len(LONG_CHAIN) - 1
-    if joint_model == "map":
-        assert not res.motion.skeleton.info["refined"]["soft_sigma_mm"]
-        assert max(after_ik.joint_rms_each.values()) < 0.1 * NOISE_FLOOR_MM, after_ik.joint_rms_each
-    else:
-        worst = {k: v / link for k, v in after_ik.joint_rms_each.items()}
-        assert max(worst.values()) < 1e-6, worst
+    assert not res.motion.skeleton.info["refined"]["soft_sigma_mm"]
+    assert max(after_ik.joint_rms_each.values()) < 0.1 * NOISE_FLOOR_MM, after_ik.joint_rms_each
     worst = {k: v / link for k, v in joints_stage.joint_rms_each.items()}
     assert max(worst.values()) < 1e-6, worst
     assert np.isfinite(res.motion.skeleton.joints.centres).all()  # no frame lost

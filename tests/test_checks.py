@@ -389,24 +389,6 @@ def test_naming_gives_the_unlike_limbs_it_stops_at(human_fit) -> None:
     assert what == "legs" and {ca[0], cb[0]} == {role["LeftUpLeg"], role["RightUpLeg"]} and max(a, b) > 1.5 * min(a, b)
 
 
-def test_unlike_limb_bones_counts_the_like_limbs_bones_a_fifth_apart(human_fit) -> None:
-    """The rigid stage's tie-break between starts: none in the generated person's fit; two when the right
-    knee is moved up by 30 % of the thigh (its markers kept: the thigh shorter, the shank longer by as much),
-    which the check says too."""
-    from mocapskel.model.naming import recognise
-    from mocapskel.solvers.rules.plausible import unlike_limb_bones
-
-    _, res = human_fit
-    motion = res.motion
-    sk = motion.skeleton
-    assert unlike_limb_bones(sk) == 0
-    role = {n: s for s, n in enumerate(recognise(sk, motion).names)}
-    hip, knee = role["RightUpLeg"], role["RightLeg"]
-    bad = _moved(motion, knee, 0.3 * (sk.origin[hip] - sk.origin[knee]))
-    assert unlike_limb_bones(bad.skeleton) == 2  # the thigh, and the shank below it grown by as much
-    assert _names(checks.run_checks(bad, markers_of(motion).points), "limb_asymmetry")
-
-
 def test_step_lengths_are_numpys_norm_of_the_differences_to_the_bit():
     """The checks' frame-to-frame steps, a block of frames at a time, against ``np.linalg.norm(np.diff(x))``."""
     from mocapskel.checks import _steps

@@ -72,25 +72,17 @@ def test_cache_skips_early_stages_when_only_late_options_change(takes, tmp_path)
     assert "unreadable — deleted and recomputed" in err
 
 
-def test_joint_model_option_chooses_the_rigid_stages_path_and_reuses_the_earlier_stages(takes, tmp_path):
-    """``--joint-model map`` fits the joints by the model's MAP (the report says so), reusing the cached stages before
-    the rigid one; on this generated human (1 mm noise, its joints fixed by the motion) both paths put the bones
-    within 1 % of each other."""
+def test_joint_model_option_names_the_model_and_refuses_the_removed_rules(takes, tmp_path):
+    """``--joint-model map`` (the only model) fits the joints by the model's MAP, as the report says; the removed
+    ``rules`` is refused as a usage error, with nothing written."""
     d, _, _ = takes
-    cache = tmp_path / "cache"
-    reps = {}
-    for model in ("rules", "map"):
-        code, _, err = run("fit", d / "human.c3d", "-o", tmp_path / f"{model}.bvh", "--report", tmp_path / f"{model}.json",
-                           "--cache-dir", cache, "--joint-model", model)
-        assert code == 0, err
-        reps[model] = json.loads((tmp_path / f"{model}.json").read_text())
-    assert reps["rules"]["refinement"].get("joint_model", "rules") == "rules"
-    assert reps["map"]["refinement"]["joint_model"] == "map"
-    assert "joints    cached — skipping" in err and "rigid     done" in err
-    lengths = {m: {b["segment"]: b["length_mm"] for b in r["bones"] if b["length_mm"]} for m, r in reps.items()}
-    assert lengths["rules"].keys() == lengths["map"].keys()
-    for k, v in lengths["rules"].items():
-        assert lengths["map"][k] == pytest.approx(v, rel=0.01), k
+    code, _, err = run("fit", d / "human.c3d", "-o", tmp_path / "map.bvh", "--report", tmp_path / "map.json",
+                       "--no-cache", "--joint-model", "map")
+    assert code == 0, err
+    assert json.loads((tmp_path / "map.json").read_text())["refinement"]["joint_model"] == "map"
+    code, _, err = run("fit", d / "human.c3d", "-o", tmp_path / "rules.bvh", "--no-cache", "--joint-model", "rules")
+    assert code == 2 and "rules" in err and "map" in err, err
+    assert not (tmp_path / "rules.bvh").exists()
 
 
 def test_stage_commands_chain_and_export(takes, tmp_path):

@@ -181,10 +181,11 @@ def test_noise_from_the_markers_alone():
     assert noise_sigma(take.markers.points, np.asarray(take.truth.marker_segment)) == 0.1
 
 
-def test_joint_model_must_be_rules_or_map():
+def test_joint_model_must_be_map():
     take = make(Recipe(kind="human", seed=1, frames=300))
-    with pytest.raises(ValueError, match="joint_model"):
-        rigid.run(_joints(take), rigid.Params(joint_model="bayes"))
+    for other in ("bayes", "rules"):  # the rules were removed
+        with pytest.raises(ValueError, match="joint_model"):
+            rigid.run(_joints(take), rigid.Params(joint_model=other))
     with pytest.raises(ValueError, match="data_weight"):
         rigid.run(_joints(take), rigid.Params(joint_model="map", data_weight="some"))
 

@@ -202,22 +202,19 @@ def test_regression_a_hand_marker_that_turns_about_the_wrist_is_the_hand() -> No
     assert np.nanmedian(off) < 0.25
 
 
-@pytest.mark.parametrize("joint_model", ["rules", "map"])
-def test_a_full_body_samples_knees_and_ankles_lie_between_their_landmarks(joint_model: str) -> None:
+def test_a_full_body_samples_knees_and_ankles_lie_between_their_landmarks() -> None:
     """Qualisys' full-body sample carries both femoral epicondyles and both malleoli of each leg (L_FLE/L_FME,
     L_FAL/L_TAM, ...), where a gait lab puts the knee and ankle centres (ISB: their midpoints), and no setting was
     chosen on it (``bench.realanat``). Its labels make the reference only; the fit does not read them. Measured: the
-    rules' knees 16-17 mm and ankles 6-8 mm from the midpoints, the model path's 11 and 6-10."""
+    knees 11 mm and the ankles 6-10 mm from the midpoints (the removed rules': 16-17 and 6-8)."""
     src = REALDATA / "ezc3d" / "Qualisys.c3d"
     if not src.is_file():
         pytest.skip(MISSING)
     from bench.realanat import TAKES, references, score
     from mocapskel import pipeline
     from mocapskel.model.kinematics import segment_origins
-    from mocapskel.stages import rigid
 
     params = pipeline.make_params()
-    params["rigid"] = rigid.Params(joint_model=joint_model)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the take's own checks warn
         mot = pipeline.run_until(src, "ik", params).artifact

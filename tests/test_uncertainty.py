@@ -242,16 +242,13 @@ def test_a_skeleton_without_a_refinement_has_no_uncertainty(hinge):
 
 
 def test_true_joints_fall_inside_the_95_percent_region_at_the_models_map():
-    """Generated takes with white noise (what the model assumes), fitted to the model's MAP (hinges not
-    held along their axes, no rule moving joints after the fit): the true joint, relative to its child's
+    """Generated takes with white noise (what the model assumes), fitted to the model's MAP: the true joint, relative to its child's
     markers, falls inside the reported 95 % region for most joints (bench/uncertainty.py: 98 % over six
     seeds; 80 % leaves room for two takes of 14 joints)."""
     from bench.uncertainty import CHI2_3_95, joint_errors
     from mocapskel.synth.presets import Recipe, make
 
     params = pipeline.make_params()
-    params["rigid"] = replace(params["rigid"], mirror_pairs=False, joint_depth=False, leaf_centre=False,
-                              hold_hinges=False)
     d2 = []
     for seed in (1, 2):
         take = make(Recipe(kind="human", seed=seed, frames=1200, noise_mm=1.0))

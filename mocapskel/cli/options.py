@@ -13,7 +13,7 @@ from ..pipeline import ReadOptions
 from .main import setup_logging
 
 JOINT_METHODS = ("auto", "jmv", "mtb", "sphere", "score")
-JOINT_MODELS = ("rules", "map")
+JOINT_MODELS = ("map",)
 
 
 def verbosity(f):
@@ -44,7 +44,7 @@ def fit_options(f):
     f = click.option("--rest-frame", type=click.IntRange(min=0), default=None, help="Frame whose pose is the rest pose [default: a well-visible frame near the start].")(f)
     f = click.option(
         "--joint-model", type=click.Choice(JOINT_MODELS), default="map", show_default=True,
-        help="How the rigid stage places the joints: the model's MAP with explicit priors, or the older rules (kept for comparison).",
+        help="How the rigid stage places the joints: the model's MAP with explicit priors (the only model; the older rules were removed).",
     )(f)
     f = click.option(
         "--joint-method", type=click.Choice(JOINT_METHODS), default="auto", show_default=True, help="Joint-centre estimator."

@@ -10,7 +10,7 @@ One folder per concern; the skeleton model first:
 - :mod:`mocapskel.solvers.ik`: inverse kinematics of a fitted skeleton over a whole take;
 - :mod:`mocapskel.solvers.grouping`: markers into rigid segments and the segments into a tree;
 - :mod:`mocapskel.solvers.merging`: marker-ID merging of passive systems;
-- :mod:`mocapskel.solvers.rules`: hand-made placement rules kept until the model replaces them.
+- :mod:`mocapskel.solvers.priors`: where the model's priors put a joint the data leave free (their means and planes).
 
 The modules at this level are shared by several folders and by the rest of the package:
 :mod:`~mocapskel.solvers.rotations` (rotation kernels), :mod:`~mocapskel.solvers.rigid` (Kabsch),

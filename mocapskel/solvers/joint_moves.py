@@ -40,18 +40,6 @@ def _move_joint(origin: np.ndarray, local: np.ndarray, seg: np.ndarray, c: int, 
     return o2, l2
 
 
-#: A move weighed against the data (:func:`_weighed`) shorter than this (mm) is not made.
-MIN_MOVE_MM = 0.05
-
-
-def _weighed(shift: float, share, c: int, axis: np.ndarray) -> float:
-    """A rule's move of joint ``c`` by ``shift`` along ``axis`` weighed against the data: ``share(c, axis)``
-    (the prior's share of the joint's posterior precision along it) of the way, the posterior mean of the
-    data's place and the rule's; 0 below :data:`MIN_MOVE_MM`."""
-    out = shift * share(int(c), axis)
-    return out if abs(out) >= MIN_MOVE_MM else 0.0
-
-
 def _repose(skel: Skeleton, origin: np.ndarray, local: np.ndarray, pts: np.ndarray):
     """IK of a skeleton with rest offsets ``origin``, ``local`` on ``pts`` (F, M, 3), the refinement's
     frames, from the refinement's poses, with no prior."""

@@ -17,20 +17,15 @@ from ..errors import DataError
 from ..model.leave_out import cut_off, leave_out, segment_words
 from ..model.tree import depth_first_order
 from ..model.naming import segment_names
-from ..solvers.parallel import run_forked
-from ..solvers.rules.deepen import deepen_joints
-from ..solvers.rules.leaf_hinges import centre_leaf_hinges
 from ..solvers.model.joint_map import SKIN_Z, map_refine, noise_sigma, residual_correlation
-from ..solvers.rules.mirror import centre_mirrored_pairs
-from ..solvers.rules.plausible import collapsed_pairs, implausible_joints, unlike_limb_bones
 from ..solvers.model.links import with_links
-from ..solvers.model.refinement import _refine_once, refine
+from ..solvers.parallel import run_forked
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
-from ..solvers.model.uncertainty import prior_share_along, skeleton_uncertainty
+from ..solvers.model.uncertainty import skeleton_uncertainty
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 27
+VERSION = 28
 
 
 @dataclass(frozen=True)
@@ -47,75 +42,15 @@ class Params:
     """Frames (the best-seen of equal stretches of the take) on which the whole
     skeleton and its poses are then refined together; 0: no refinement."""
     refine_iterations: int = 60
-    trial_iterations: int = 60
-    """With two starts (see :func:`run`), the iterations each gets before the better is chosen and
-    alone refined to the end. Fewer pick the wrong start on two-marker skeletons: their residuals
-    cross late (a generated two-marker take, 1 min with gaps: 2.00 against 1.85 mm after 20
-    iterations, 1.74 against 1.78 mm after 60; chosen at 20, its joints are 54 mm off instead of
-    6 mm). On real takes the choice at 20 differs from the one at 60 only where the two are within
-    0.4 % of each other, and would make the refinement a third cheaper."""
-    joint_prior: float = 0.01
-    """Weight (per frame) of the prior that holds each joint where the joints stage put it
-    relative to the markers of its two segments (see
-    :func:`~mocapskel.solvers.model.calibrate.refine_skeleton`), used when the refinement without
-    it leaves a joint implausibly far from its segments' markers (it slid along a direction
-    the markers do not fix). Without need it stays off: on a skeleton of two-marker segments
-    the joints stage's centres are rough, and only the whole skeleton's rigidity, unheld,
-    puts them right."""
-    far: float = 0.5
-    """A joint is implausible when it sits farther than this fraction of the subject's marker
-    extent from the nearest marker of one of its two segments."""
-    outside: float = 0.15
-    """...or outside the convex hull of all the subject's markers at rest by more than this fraction
-    of its marker extent (joints sit inside the body, markers on its skin: a real gait take's knee
-    slid 440 mm out of the body, a generated walk's hip 240 mm, while joints of plausible fits on
-    43 real takes sit at most 0.14 of the extent outside, the most outside ones centres of a
-    wheelchair's wheels). Not a check of the output: sparse marker sets outline no body (a
-    generated two-link chain with three markers a link has its exact joint 0.19 outside), and
-    there holding the joint where the joints stage put it costs nothing."""
-    hold_tolerance: float = 0.05
-    """The held refinement is kept when its marker rms is at most this fraction above the unheld
-    one's (the slide was free), or when the unheld one leaves a joint implausibly far."""
-    slide: float = 0.1
-    """...or when the refinement moved it, relative to the markers of one of its segments, by
-    more than this fraction of that extent from where the joints stage put it (a slide along
-    a direction the markers do not fix; the refinement corrects rough starts by less)."""
-    mirror_pairs: bool = True
-    """Like limbs on one segment have their first joints moved together until their midpoint lies in
-    the plane of symmetry of that segment's markers (see :func:`centre_mirrored_pairs`)."""
-    joint_depth: bool = True
-    """A hinge between two limbs with a marker over its axis (a knee marker) has its centre put one
-    limb half-width inside that marker, along the axis (see :func:`deepen_joints`)."""
-    leaf_centre: bool = True
-    """A hinge at the end of a limb whose child's markers lie nearer it than the parent's (a foot on
-    a shank) has its centre put, along the axis, at the mean position of the child's markers (see
-    :func:`centre_leaf_hinges`)."""
-    moves_by_evidence: bool = False
-    """The depth and leaf-centre moves (``joint_depth``, ``leaf_centre``) taken as priors on the joint along
-    its axis, not as places to move it to: the joint goes the prior's share of the way (its share of the
-    reported precision along the axis at the refined skeleton, the skin's part and the residuals' spread in it,
-    :func:`~mocapskel.solvers.model.uncertainty.prior_share_along`): all of it where the data say nothing there,
-    none where they fix the joint. The leaf-centre rule's own tests of the data (``LEAF_PLANAR``, the
-    residual) are then not asked."""
     hinge_ratio: float = 0.6
     """A joint is a hinge when the spread of its relative rotations about their second axis is at
     most this fraction of the spread about the first."""
-    hold_hinges: bool = True
-    """Joints the joints stage placed as hinges, and joints SCoRE fixed in full whose motion turns
-    about one axis (``hinge_ratio``), keep their position along that axis, relative to their two
-    segments' markers, in the refinement (the markers hardly fix it; the joints stage put it in
-    the plane of the neighbouring joints, or SCoRE where its least squares put it)."""
-    hold_weight: float = 0.01
-    """Weight (per frame, as ``joint_prior``) of that hold: a prior the markers outweigh
-    wherever they fix the position."""
     joint_model: str = "map"
-    """``"map"`` (default): the refinement is the model's MAP with an explicit Gaussian prior on every joint (see
-    :mod:`~mocapskel.solvers.model.joint_map`), and nothing is moved after it; of the starts (the joints
-    stage's centres and its second estimate), the one of lowest negative log posterior is kept. ``"rules"``: the refinement, the
-    held fit and the moves above, kept for comparison; with ``"map"``, ``far``, ``outside``, ``hold_tolerance``, ``slide``, ``joint_prior``, ``hold_hinges``,
-    ``mirror_pairs``, ``joint_depth`` and ``leaf_centre`` are then not used."""
+    """How the joints are placed: ``"map"``, the only model: the refinement is the model's MAP with an explicit
+    Gaussian prior on every joint (see :mod:`~mocapskel.solvers.model.joint_map`), and nothing is moved after it; of
+    the starts (the joints stage's centres and its second estimate), the one of lowest negative log posterior is kept."""
     rigid_frames: int = 1800
-    """With ``joint_model="map"``: where the kept start's MAP has rigid joints (its residual does not follow the joint
+    """Where the kept start's MAP has rigid joints (its residual does not follow the joint
     angles: the markers ride on rigid bodies and what is left is noise), it is refined again on up to this many frames,
     every frame of a short take (the caps for large skeletons still apply): with a model that fits, every frame adds
     information (generated walks with rigid markers, 1200 frames: 4.0 / 4.9 -> 2.5 / 3.1 mm; BENCHMARKS, "More frames
@@ -123,25 +58,25 @@ class Params:
     (the realistic cmu41 takes and the real references lost with them), and the fit keeps ``refine_frames``. At most
     ``refine_frames``: off."""
     gross_errors: bool = True
-    """With ``joint_model="map"``: where the fit's joints stay rigid (its residual is noise), residuals beyond what that
+    """Where the fit's joints stay rigid (its residual is noise), residuals beyond what that
     noise gives once in a million (a marker swapped or jumping in a frame,
     :func:`~mocapskel.solvers.model.skin.gross_mask`) are left out and the fit made again, each costing the posterior
     as if at that bound (a truncated quadratic). Where the residual follows the joint angles its large values are
     skin, and are kept."""
     prior_scale: float = 0.1
-    """With ``joint_model="map"``: the prior's standard deviation on a joint, relative to each of its
+    """The prior's standard deviation on a joint, relative to each of its
     two segments' marker centroids, as a multiple of that segment's size seen from the joint (the rms
     distance of its markers from the joint): 15 mm for a thigh's 150. Chosen among 0.03, 0.1 and 0.3
     on generated seeds 1-3 (BENCHMARKS, "Rules against the model")."""
     prior_mean: str = "deepened+leaf"
-    """With ``joint_model="map"``: where the prior centres each joint: ``"start"``, where the joints stage
+    """Where the prior centres each joint: ``"start"``, where the joints stage
     put it; ``"deepened"``, there, but a hinge with a marker over its axis one limb half-width inside
     that marker along the axis (the geometry of :func:`deepen_joints`, as the prior's mean, not a move);
     ``"deepened+leaf"``, also a hinge at the end of a limb at its end segment's markers' middle along its
     axis where the markers do not see that move (the geometry of :func:`centre_leaf_hinges`), and the joint of a
     one-marker leaf at its parent's end (:func:`~mocapskel.solvers.model.joint_map.one_marker_ends`)."""
     data_weight: str = "sandwich"
-    """With ``joint_model="map"``: what the refinement's frames are worth to the data term: ``"frames"``,
+    """What the refinement's frames are worth to the data term: ``"frames"``,
     each an independent observation; ``"effective"``, as many independent frames as their residuals'
     correlation in time allows (:func:`~mocapskel.solvers.model.effective.effective_frames`: skin motion
     makes neighbouring frames' residuals alike); ``"sandwich"``, the data term divided by how many times the
@@ -153,12 +88,12 @@ class Params:
     what ``"frames"`` gave them and the real ones get about what ``"effective"`` gives: both halves of the generated
     bench and the real checking half gained (BENCHMARKS, "The data's weight from the scores' spread")."""
     bone_sigma: float = 0.03
-    """With ``joint_model="map"``: like limbs' bones (left and right) agree in length within this fraction
+    """Like limbs' bones (left and right) agree in length within this fraction
     of their length (a Gaussian factor per pair; 0: no such factor). 0.03: a body's left and right long
     bones differ by a few per cent; with it the model gained on both generated halves and on cmu_16_07
     (BENCHMARKS, "The data's weight, the prior's mean and like limbs": ``map-like``)."""
     hinge_scale: float = 0.01
-    """With ``joint_model="map"``: a second prior, along the axis only, on the hinges whose place along their
+    """A second prior, along the axis only, on the hinges whose place along their
     axis the prior's mean knows (a marker over the axis, ``prior_mean``'s deepening; a limb's end segment's
     markers' middle; with ``hinge_placed``, also the joints stage's placement on the axis), its standard
     deviation this multiple of the segment's size (as ``prior_scale``'s); 0: none. Along such an
@@ -172,7 +107,7 @@ class Params:
     opensim_test_walking it matched 6 of 6 joints at 46.5 mm where without it 4 of 6 at 50.8 (BENCHMARKS,
     "A prior along a hinge's axis")."""
     soft_sigma: float = 15.0
-    """With ``joint_model="map"``: the joints between two segments of three markers or more are soft
+    """The joints between two segments of three markers or more are soft
     (``refine_skeleton``'s ``soft``): in each frame such a joint may sit off its fixed place in its parent's frame by
     a Gaussian offset of this standard deviation (mm per axis); 0: none. Marker clusters slide on the skin as a whole
     (10-30 mm on a thigh), and rigid joints pass that misfit on to the neighbours' poses. At 15 mm the generated bench
@@ -181,7 +116,7 @@ class Params:
     (:data:`~mocapskel.solvers.model.joint_map.SKIN_Z`): a take whose residual does not follow its joint angles keeps
     rigid joints (the 48-marker range of motion, whose joints are exact: 4.0 -> 2.8 mm)."""
     line_sigma: float = 0.01
-    """With ``joint_model="map"``: a limb's middle joint (a knee between hip and ankle, an elbow between shoulder and
+    """A limb's middle joint (a knee between hip and ankle, an elbow between shoulder and
     wrist) lies along the axis it turns about in line with its two neighbours
     (:func:`~mocapskel.solvers.model.joint_map.limb_lines`), a Gaussian of this fraction of their distance; 0: no
     such factor. A walk leaves all three free along one axis; tied, they slide together, where their three priors
@@ -190,19 +125,19 @@ class Params:
     in 35 (gait set, true grouping: 68.0 / 58.7 -> 60.1 / 53.1 mm), the real references too (opensim_test_walking
     33.2 -> 30.2 mm) (BENCHMARKS, "A limb's middle joint in line with its neighbours")."""
     mirror_prior: bool = True
-    """With ``joint_model="map"``: like limbs' first joints (two hips on a pelvis) lie in their parent's plane of
+    """Like limbs' first joints (two hips on a pelvis) lie in their parent's plane of
     symmetry, their mean's distance from it a Gaussian as wide as the parent's markers are far from symmetric. With the
     data weighed by their scores' spread it gained a little on every half of the generated bench and held cmu_16_07's
     two hips where a walk leaves them free (51.3 mm over 12 joints against 59.7; BENCHMARKS, "The data's weight from
     the scores' spread"); with every frame independent it had cost a reach 34 mm and stayed off."""
     mean_ratio: float | None = 1.0
-    """With ``joint_model="map"``: the hinge test of the prior's mean (which joints it deepens and centres at a leaf's
+    """The hinge test of the prior's mean (which joints it deepens and centres at a leaf's
     markers), as ``hinge_ratio``; None: ``hinge_ratio``. 1: no test, every joint about the axis it turns about most, so
     that the starts of a take deepen the same joints where their poses agree on the axes (the tight prior along a
     hinge's axis, ``hinge_scale``, stays with ``hinge_ratio``'s hinges: a joint the motion fixes is not held there)
     (BENCHMARKS, "The prior's mean without a hinge test")."""
     links: bool = True
-    """With ``joint_model="map"``: a joint the joints stage held where it ran off along a line becomes two joints
+    """A joint the joints stage held where it ran off along a line becomes two joints
     with a link of no markers between them (:mod:`~mocapskel.solvers.model.links`) where the model scores that better
     (:func:`~mocapskel.solvers.model.links.with_links`): a robot arm's link that carries no marker."""
     skin_once: bool = True
@@ -212,10 +147,10 @@ class Params:
     body, z 7.9 against 1.8, and a soft fit of one start lost to a rigid fit of the other by 0.2 in 4,066). False:
     each start's own answer, tested again at its second fit."""
     pose_trust: float = 0.1
-    """With ``joint_model="map"``: the fits' per-frame trust region (rad, ``refine_skeleton``'s ``pose_trust``): a
+    """The fits' per-frame trust region (rad, ``refine_skeleton``'s ``pose_trust``): a
     frame whose segments turned more than this in a step is damped four times more in the next. 0: one damping."""
     like_widths: bool = True
-    """With ``joint_model="map"``: the prior mean's deepening gives like limbs' joints (a left and a right knee) the
+    """The prior mean's deepening gives like limbs' joints (a left and a right knee) the
     mean of their two limb half-widths, two measures of one width (cmu_16_07's right knee, measured off a thigh marker
     4.6 mm from a slanted bone line, 75 -> 46 mm from the reference; the generated halves and the real checking half
     the same; BENCHMARKS, "Like limbs' half-widths")."""
@@ -225,7 +160,7 @@ class Params:
     4 of 174 generated rows by 0.2 mm at most and saved 1-5 s on the longest real takes (BENCHMARKS, "The model
     path's time")."""
     mean_within: bool = True
-    """With ``joint_model="map"``: the prior's mean of a joint the estimators left beyond all of its two segments'
+    """The prior's mean of a joint the estimators left beyond all of its two segments'
     markers along the axis it turns about most is brought back to the nearest of them, or a limb half-width beyond it
     (:func:`~mocapskel.solvers.model.joint_map.within_markers`): along that axis the markers do not place a joint, and
     the gait set's found groupings had knees 395-446 mm out of the leg there (checking half 95.0 -> 67.9 mm, tuning
@@ -312,8 +247,8 @@ def without_unfittable(joints: Joints, err: Unfittable) -> Joints:
 def run(joints: Joints, params: Params = Params()) -> Skeleton:
     """Fit constant offsets for every segment; the rest pose is ``rest_frame``'s. A segment that cannot be
     fitted is left out (see :func:`without_unfittable`), and the rest fitted."""
-    if params.joint_model not in ("rules", "map"):
-        raise ValueError(f"joint_model must be 'rules' or 'map', not {params.joint_model!r}")
+    if params.joint_model != "map":
+        raise ValueError(f"joint_model must be 'map' (the rules were removed), not {params.joint_model!r}")
     if params.data_weight not in ("frames", "effective", "sandwich"):
         raise ValueError(f"data_weight must be 'frames', 'effective' or 'sandwich', not {params.data_weight!r}")
     while True:
@@ -324,88 +259,9 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             break
         except Unfittable as err:
             joints = without_unfittable(joints, err)
-    if params.joint_model == "map":
-        if params.refine_frames > 0:
-            skel = _map_fit(joints, skel, rest, parent, parent_edge, order, params)
-        return _with_uncertainty(_with_lengths(skel), skel, params)
     if params.refine_frames > 0:
-        if joints.alt_centres is None:
-            skel = refine(skel, params, joints.centres)
-        else:
-            # a second start (the joints stage's framework trajectories): both are refined for a few
-            # iterations side by side, in two processes, and the better is refined to the end
-            def trial(which: int) -> tuple[Skeleton, Skeleton, dict] | None:
-                c = joints.centres if which == 0 else joints.alt_centres
-                try:
-                    st = skel if which == 0 else _fit(joints, c, rest, parent, parent_edge, order, params)
-                except DataError:
-                    return None
-                return (st, *_refine_once(st, params, c, 0.0, iterations=params.trial_iterations))
-
-            def light(which: int):
-                # sent back from a forked process: without the take (the same ``joints`` here)
-                got = trial(which)
-                return None if got is None else (replace(got[0], joints=None), replace(got[1], joints=None), got[2])
-
-            one, two = [None if got is None else (replace(got[0], joints=joints), replace(got[1], joints=joints), got[2])
-                        for got in run_forked(light, [0, 1])]
-            if "refined" in one[1].info:
-                a = one[1].info["refined"]["marker_rms_mm_after"]
-                b = two[1].info.get("refined", {}).get("marker_rms_mm_after") if two is not None else None
-                # never a lower residual bought with a joint off its markers
-                bad_one = len(implausible_joints(one[1], params.far, params.outside))
-                bad_two = np.inf if two is None else len(implausible_joints(two[1], params.far, params.outside))
-                if bad_one != bad_two:
-                    win = 1 if bad_one > bad_two else 0
-                elif b is not None and abs(b - a) <= START_TIE * min(a, b) and (
-                        (ca := len(collapsed_pairs(one[0]))) != (cb := len(collapsed_pairs(two[0])))):
-                    # residuals the markers do not tell apart: the start whose like limbs' joints have
-                    # not slid together (both trials slid a real jump's hips together, 13 mm apart, from
-                    # starts 154 and 79 mm apart, 0.01 % apart in residual: the refinement that holds
-                    # them holds them where the start had them)
-                    win = 1 if ca > cb else 0
-                elif b is not None and abs(b - a) <= START_TIE * min(a, b) and (
-                        (ua := unlike_limb_bones(one[1])) != (ub := unlike_limb_bones(two[1]))):
-                    # ... or the start whose like limbs' bones are alike: a real walk's two starts 0.3 % apart,
-                    # the one of lower residual with its right thigh 323 mm against the left's 469 (two bones
-                    # of the legs more than 20 % apart, none in the other)
-                    win = 1 if ua > ub else 0
-                else:
-                    win = 1 if b is not None and b < a else 0
-                st, part, hold = (one, two)[win]
-                out = refine(st, params, (joints.centres, joints.alt_centres)[win], part, hold)
-                info = dict(out.info)
-                info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
-                                       marker_rms_mm_starts={"joints": a, "framework": b},
-                                       trial_iterations=params.trial_iterations)
-                skel = replace(out, info=info)
-            else:
-                skel = one[1]
-    refined = skel
-    share = _PriorShares(refined) if params.moves_by_evidence else None
-    if params.mirror_pairs:
-        skel = centre_mirrored_pairs(skel)
-    if params.joint_depth and skel.pose_rot is not None:
-        skel = deepen_joints(skel, params.hinge_ratio, share=share)
-    if params.leaf_centre and skel.pose_rot is not None:
-        skel = centre_leaf_hinges(skel, params.hinge_ratio, share=share)
-    return _with_uncertainty(_with_lengths(skel), refined, params)
-
-
-class _PriorShares:
-    """``share(c, axis)``: the prior's share of joint ``c``'s posterior precision along ``axis`` at the
-    refined skeleton (its uncertainty computed on first use); 1 where it cannot be computed."""
-
-    def __init__(self, refined: Skeleton):
-        self.refined = refined
-        self.joints: dict | None = None
-
-    def __call__(self, c: int, axis: np.ndarray) -> float:
-        if self.joints is None:
-            got = skeleton_uncertainty(self.refined)
-            self.joints = got["joints"] if got else {}
-        j = self.joints.get(self.refined.names[c])
-        return 1.0 if j is None else prior_share_along(j, axis)
+        skel = _map_fit(joints, skel, rest, parent, parent_edge, order, params)
+    return _with_uncertainty(_with_lengths(skel), skel, params)
 
 
 def _with_uncertainty(skel: Skeleton, refined: Skeleton, params: Params) -> Skeleton:
@@ -567,11 +423,6 @@ def _fit(joints: Joints, centres: np.ndarray, rest: int, parent: np.ndarray, par
         rest_frame=rest, labels=mk.labels, joints=joints, info=info,
     )
     return skel
-
-
-#: Two refinement starts whose trial residuals agree within this fraction are a tie the markers do not
-#: decide (a real jump's: 0.01 %; a generated two-marker subject's, where the lower is the better start: 1.3 %).
-START_TIE = 0.005
 
 
 def _with_lengths(skel: Skeleton) -> Skeleton:

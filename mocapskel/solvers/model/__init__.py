@@ -18,10 +18,7 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
   (``joint_overdispersion``, the data term's weight);
 - :mod:`mocapskel.solvers.model.skin`: how much of the residual follows the joint angles
   (``skin_motion``), the part of the skin's motion the model's noise does not describe;
-- :mod:`mocapskel.solvers.model.refinement`: the refinement of the older ``joint_model="rules"``
-  path (``refine``, kept for comparison): the bundle adjustment free, then held where the tests of
-  :mod:`mocapskel.solvers.rules.plausible` say a joint is off the body; it also picks the frames
-  both paths fit (``refinement_frames``, ``pick_frames``).
+- :mod:`mocapskel.solvers.model.refinement`: the frames the fits use (``refinement_frames``, ``pick_frames``).
 
 The rigid stage (:mod:`mocapskel.stages.rigid`) calls them; the joints stage gives the starts
 (:mod:`mocapskel.solvers.joints`), and every frame is posed by :mod:`mocapskel.solvers.ik`.

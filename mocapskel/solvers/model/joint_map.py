@@ -12,7 +12,7 @@ prior says where it is:
 size_cs being the rms distance of segment s's markers from the joint at rest (how far the segment
 reaches from it), mean_c where the joints stage put the joint (``mean="start"``) or there, but a
 hinge with a marker over its axis one limb half-width inside that marker along the axis
-(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.rules.deepen.deepen_joints`, a surface
+(``mean="deepened"``: the geometry of :func:`~mocapskel.solvers.priors.deepen.deepen_joints`, a surface
 marker sitting outside the bone, as the prior's mean; like limbs' joints at the mean of their two
 half-widths). The MAP minimises
 
@@ -56,7 +56,7 @@ the fit made again from where it ended, each such residual costing the posterior
 The skin test leaves them out too: one frame of them turned a rigid take's z from -8.8 to 21.6.
 
 Like limbs' first joints (optional, ``mirror``) lie in their parent's plane of symmetry: one factor
-per pair (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`).
+per pair (:func:`~mocapskel.solvers.priors.mirror.mirror_planes`).
 
 A limb's middle joint in line with its neighbours (``line_sigma`` > 0, :func:`limb_lines`): a knee between hip and
 ankle, an elbow between shoulder and wrist, lies, along the axis it turns about, where the line between its two
@@ -78,9 +78,9 @@ from ...artifacts import Skeleton
 from ...model.tree import like_subtrees, subtree_shape
 from .calibrate import _Problem, refine_skeleton
 from .effective import correlation_in_time, effective_frames
-from ..rules.deepen import _half_width, deepen_joints
-from ..rules.leaf_hinges import centre_leaf_hinges
-from ..rules.mirror import mirror_planes
+from ..priors.deepen import _half_width, deepen_joints
+from ..priors.leaf_hinges import centre_leaf_hinges
+from ..priors.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from .skin import gross_mask, skin_motion
@@ -223,7 +223,7 @@ def one_marker_ends(skel: Skeleton) -> Skeleton:
 def within_markers(skel: Skeleton, ratio: float, skip: set[str]) -> Skeleton:
     """``skel`` with every joint (but those named in ``skip``) whose place along the axis it turns about most lies
     beyond all of its two segments' markers along that axis brought back to the nearest of them, or to one limb
-    half-width beyond it where the two limbs measure one (:func:`~mocapskel.solvers.rules.deepen._half_width`: a knee
+    half-width beyond it where the two limbs measure one (:func:`~mocapskel.solvers.priors.deepen._half_width`: a knee
     whose markers are all lateral lies that far inside them), each segment's markers kept where they are; the prior's
     mean there.
 
@@ -346,7 +346,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     scaled by n_eff / n (the prior's weights by n / n_eff). With ``bone_sigma`` > 0, like limbs' bones
     (:func:`like_bone_pairs`) differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their mean
     length at the start: one more factor each. With ``mirror``, like limbs' first joints (and a child on the middle
-    line) lie in their parent's plane of symmetry (:func:`~mocapskel.solvers.rules.mirror.mirror_planes`), their mean's
+    line) lie in their parent's plane of symmetry (:func:`~mocapskel.solvers.priors.mirror.mirror_planes`), their mean's
     distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it.
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
@@ -363,7 +363,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
     ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
-    (:func:`~mocapskel.solvers.rules.deepen.like_half_widths`)."""
+    (:func:`~mocapskel.solvers.priors.deepen.like_half_widths`)."""
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:

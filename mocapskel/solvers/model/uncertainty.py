@@ -674,15 +674,3 @@ def _eigh_generalized(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndar
     C = Li @ A @ Li.T
     w, W = np.linalg.eigh(0.5 * (C + C.T))
     return w, Li.T @ W
-
-
-def prior_share_along(joint: dict, u: np.ndarray) -> float:
-    """The prior's share of a joint's posterior precision along the unit direction ``u`` (lab axes at
-    rest): ``prior precision / (u^T Lambda u)``, Lambda the precision rebuilt from :func:`skeleton_uncertainty`'s
-    entry ``joint`` (its ``sd_mm``, ``directions``, ``prior_sd_mm``; the skin's part and the residuals' spread in it).
-    1 where the data say nothing along ``u``, near 0 where they fix the joint there."""
-    sd = np.asarray(joint["sd_mm"], dtype=float)
-    D = np.asarray(joint["directions"], dtype=float)
-    u = np.asarray(u, dtype=float) / np.linalg.norm(u)
-    lam = float(np.sum((D @ u) ** 2 / sd**2))
-    return float(np.clip((1.0 / float(joint["prior_sd_mm"]) ** 2) / lam, 0.0, 1.0)) if lam > 0 else 1.0

@@ -3,13 +3,12 @@ half-width inside that marker."""
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Callable
 
 import numpy as np
 
 from ...artifacts import Skeleton
 from ..joints.hinges import _hinge_direction, _relative_rotations
-from ..joint_moves import _move_joint, _weighed, _with_moves
+from ..joint_moves import _move_joint, _with_moves
 from ..rest_pose import _bone_line, _rest_markers
 from ..rotations import segments_seen
 
@@ -75,8 +74,7 @@ def _inward(skel: Skeleton, p: int, m: int, ax: np.ndarray, at_rest: float) -> f
     return float(np.sign(np.median(v))) or 1.0
 
 
-def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None = None,
-                  like: list[tuple[int, int]] | None = None) -> Skeleton:
+def deepen_joints(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, int]] | None = None) -> Skeleton:
     """Hinges between two limbs with a marker over their axis get their centre one limb half-width
     inside that marker.
 
@@ -96,13 +94,11 @@ def deepen_joints(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.n
     on the axis (both nearer it than a quarter of their distance apart), one to three half-widths
     along it from the first (a medial and a lateral knee marker), puts it between the two, wherever
     the fit left it. Each segment keeps its markers where they were; the move is along the axis the
-    joint turns about, so the poses still fit. With ``share`` (as in
-    :func:`~mocapskel.solvers.rules.leaf_hinges.centre_leaf_hinges`), that place is a prior on the centre
-    along the axis: the centre goes the prior's share of the way there. With ``like`` (pairs of like limbs'
+    joint turns about, so the poses still fit. With ``like`` (pairs of like limbs'
     segments, :func:`~mocapskel.solvers.model.joint_map.like_bone_pairs`), two like joints that both measure a
     half-width use the mean of the two (:func:`like_half_widths`).
     """
-    return _deepen(skel, hinge_ratio, share, like_half_widths(skel, hinge_ratio, like) if like else {})[0]
+    return _deepen(skel, hinge_ratio, like_half_widths(skel, hinge_ratio, like) if like else {})[0]
 
 
 def like_half_widths(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, int]]) -> dict[int, float]:
@@ -110,7 +106,7 @@ def like_half_widths(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, i
     of like segments whose joints both measure one in :func:`deepen_joints` (as it measures them without this
     pooling). A person's left and right knees are as wide as each other, while one limb's measure can rest on a
     single marker, whose distance from a bone line the start's joints slant: two measures of one width."""
-    width = _deepen(skel, hinge_ratio, None, {})[1]
+    width = _deepen(skel, hinge_ratio, {})[1]
     out = {}
     for x, y in like:
         if x in width and y in width:
@@ -118,8 +114,7 @@ def like_half_widths(skel: Skeleton, hinge_ratio: float, like: list[tuple[int, i
     return out
 
 
-def _deepen(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray], float] | None,
-            widths: dict[int, float]) -> tuple[Skeleton, dict[int, float]]:
+def _deepen(skel: Skeleton, hinge_ratio: float, widths: dict[int, float]) -> tuple[Skeleton, dict[int, float]]:
     """:func:`deepen_joints`, a joint of ``widths`` at that half-width instead of its own; also {joint: its own
     half-width} where it measured one."""
     R = skel.pose_rot
@@ -191,8 +186,6 @@ def _deepen(skel: Skeleton, hinge_ratio: float, share: Callable[[int, np.ndarray
             m = on[0]
             inward = _inward(skel, p, m, ax, float((centre - pos[m]) @ ax))
             shift = t[m] + inward * r
-        if share is not None and not (shift := _weighed(shift, share, c, ax)):
-            continue
         origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
         moved[skel.names[c]] = round(float(abs(shift)), 1)
     if not moved:

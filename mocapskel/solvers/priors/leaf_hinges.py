@@ -2,13 +2,11 @@
 segment's markers."""
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 
 from ...artifacts import Skeleton
 from ..joints.hinges import _hinge_axes, _hinge_direction, _relative_rotations, _relative_rotvecs
-from ..joint_moves import _move_joint, _pose_ms, _weighed, _with_moves
+from ..joint_moves import _move_joint, _pose_ms, _with_moves
 from ..rest_pose import _bone_line, _rest_markers
 from ..rotations import segments_seen
 
@@ -30,8 +28,7 @@ LEAF_ACROSS = 0.7
 LEAF_PLANAR = 0.85
 
 
-def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = None,
-                       share: Callable[[int, np.ndarray], float] | None = None) -> Skeleton:
+def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = None) -> Skeleton:
     """Hinges at the end of a limb get their centre, along the axis, at the mean position of the child's
     markers.
 
@@ -57,16 +54,10 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
     range-of-motion take, whose markers sit anywhere on the hand and whose motion fixes it better,
     would have moved 105 mm (12 times it). Each segment keeps its markers where they
     were; the move is along the axis the joint turns about, so the poses still fit.
-
-    With ``share`` (``share(c, axis)``: the prior's share of joint ``c``'s posterior precision along
-    ``axis``, :func:`~mocapskel.solvers.model.uncertainty.prior_share_along`), the child's markers' middle is
-    a prior on the centre along the axis instead of a place to move it to: the centre goes that share
-    of the way, the data's estimate keeping the rest (the posterior mean of the two along the axis),
-    and neither ``LEAF_PLANAR`` nor the residual test ``seen`` is asked.
     """
     if skel.pose_rot is None or skel.pose_frames is None:
         return skel
-    if seen is None and share is None:
+    if seen is None:
         level = skel.joints.topology.segments.info.get("skin_level_mm")
         if not level or not np.isfinite(level):
             return skel
@@ -103,10 +94,9 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
             ax = _hinge_direction(rel, hinge_ratio, rv=rv)
         if ax is None:
             continue
-        if share is None:
-            sv = np.linalg.svd(rv, compute_uv=False)
-            if not sv[1] > 0 or sv[2] > LEAF_PLANAR * sv[1]:
-                continue  # it turns alike about every axis across the main one: exercised in every direction
+        sv = np.linalg.svd(rv, compute_uv=False)
+        if not sv[1] > 0 or sv[2] > LEAF_PLANAR * sv[1]:
+            continue  # it turns alike about every axis across the main one: exercised in every direction
         shift = float(np.mean((pos[mk] - J) @ ax))
         line = _bone_line(skel, p)
         if line is None or dc > LEAF_SHORT * line[2] or abs(shift) > LEAF_ACROSS * dc:
@@ -116,16 +106,13 @@ def centre_leaf_hinges(skel: Skeleton, hinge_ratio: float, seen: float | None = 
         over = np.flatnonzero(off <= 0.5 * dc)
         if over.size and abs(float(t[over[np.argmin(off[over])]])) >= abs(shift):
             continue  # already inside the limb: farther from its skin marker than from the child's middle
-        if share is not None and not (shift := _weighed(shift, share, c, ax)):
-            continue
         o2, l2 = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
-        if share is None:
-            if base is None:
-                base = _pose_ms(skel, origin, local, pts)
-            ms = _pose_ms(skel, o2, l2, pts)
-            if ms - base > seen:
-                continue  # the markers see the move: they fix the centre along the axis
-            base = ms
+        if base is None:
+            base = _pose_ms(skel, origin, local, pts)
+        ms = _pose_ms(skel, o2, l2, pts)
+        if ms - base > seen:
+            continue  # the markers see the move: they fix the centre along the axis
+        base = ms
         origin, local = o2, l2
         moved[skel.names[c]] = round(abs(shift), 1)
     if not moved:
