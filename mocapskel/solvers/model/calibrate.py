@@ -375,9 +375,6 @@ def refine_skeleton(
     tol: float = 1e-5,
     chunk: int = 128,
     hold_along: dict[int, np.ndarray] | None = None,
-    hold_weight: float = 0.01,
-    joint_prior: float = 0.0,
-    prior_joints: set | None = None,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
     prior_weights: np.ndarray | None = None,
     like_bones: list[tuple[int, int, float]] | None = None,
@@ -398,24 +395,19 @@ def refine_skeleton(
     hold_along : {child segment: unit axis (3,) in the rest pose's axes}: joints (hinges) whose position along
         that axis, relative to the marker centroid of each of their two segments, is held where it starts (where
         ``anchor`` has it): relative to the markers, not to the parent's origin, or a chain of hinges about one
-        axis (a walk's hip, knee and ankle) slides along it together (a real walk's knee went 90 mm out of the leg).
-    hold_weight : weight (per frame, mm^-2 per mm^2) of that hold: a prior the markers outweigh where they fix it.
-    joint_prior : weight (per frame, mm^-2 per mm^2) of a prior that holds every joint where it starts relative to
-        the marker centroid of each of its two segments: where the markers fix a joint they swamp it; along a
-        direction they hardly fix (a hinge's axis, a two-marker segment's twist) it keeps the joint near its
-        markers instead of sliding away at no cost. 0: no prior.
-    prior_joints : the child segments whose joints the prior holds (None: all).
+        axis (a walk's hip, knee and ankle) slides along it together (a real walk's knee went 90 mm out of the leg);
+        its weights are ``hold_weights``.
     anchor : (origin, marker_local) of the skeleton whose joints the prior holds, when the fit starts
         from another (a refinement of it); None: the start.
-    prior_weights : (S, 2) instead of ``joint_prior``: the weight (whole fit, not per frame) of the prior on
-        child c's joint relative to its parent's marker centroid ([c, 0]) and its own ([c, 1]); a Gaussian
-        of sigma (mm, per axis) against marker noise sigma_n weighs sigma_n^2 / sigma^2.
+    prior_weights : (S, 2) the weight (whole fit, not per frame) of the prior that holds child c's joint where it
+        starts relative to its parent's marker centroid ([c, 0]) and its own ([c, 1]); a Gaussian of sigma (mm, per
+        axis) against marker noise sigma_n weighs sigma_n^2 / sigma^2. None: no prior.
     like_bones : (a, b, weight) for two child segments whose offsets from their parents' origins (their
         parents' bones) should be as long as each other: ``weight`` (whole fit) x the squared difference of
         their lengths, each length linearised along its direction at the start.
     hold_weights : {child segment: (weight relative to its parent's markers, to its own)} for the joints of
         ``hold_along``: the hold's weight for the whole fit, joint by joint (a Gaussian of sigma against marker
-        noise sigma_n weighs sigma_n^2 / sigma^2), instead of ``hold_weight`` per frame for all.
+        noise sigma_n weighs sigma_n^2 / sigma^2).
     soft : {child segment c: weight per frame}: c's joint is soft: in each frame it may sit off its fixed place in
         the parent's frame by e_cf, weight x |e_cf|^2 (a Gaussian of sigma against marker noise sigma_n weighs
         sigma_n^2 / sigma^2): a joint that is no fixed point (a shoulder on its girdle, a spine's turn over many
@@ -445,23 +437,20 @@ def refine_skeleton(
     W = max(pr.w.sum(), 1.0)
     held = [(int(c), np.asarray(a, dtype=float) / np.linalg.norm(a)) for c, a in (hold_along or {}).items()
             if parent[int(c)] >= 0]
-    k_hold = float(hold_weight) * F
+    if held and hold_weights is None:
+        raise ValueError("hold_along needs hold_weights")
     if prior_weights is None:
-        A, k_prior = _joint_prior_operator(pr, parent, prior_joints), float(joint_prior) * F
+        A, k_prior = np.zeros((0, ng)), 0.0
     else:
         A, k_prior = _joint_prior_operator(pr, parent, weights=np.asarray(prior_weights, dtype=float)), 1.0
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
-        if hold_weights is None:
-            Ac = _joint_prior_operator(pr, parent, {c})
-        else:
-            wc = np.zeros((S, 2))
-            wc[c] = hold_weights[c]
-            Ac = _joint_prior_operator(pr, parent, {c}, weights=wc)
+        wc = np.zeros((S, 2))
+        wc[c] = hold_weights[c]
+        Ac = _joint_prior_operator(pr, parent, {c}, weights=wc)
         rows.extend(a @ Ac[k : k + 3] for k in range(0, Ac.shape[0], 3))
-    if hold_weights is not None:
-        k_hold = 1.0
+    k_hold = 1.0
     Hh = np.array(rows).reshape(-1, ng)
     if anchor is None:
         g0 = _pack(pr, d, l)
