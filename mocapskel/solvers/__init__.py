@@ -17,6 +17,6 @@ The modules at this level are shared by several folders and by the rest of the p
 :mod:`~mocapskel.solvers.rigid_shape` (one rigid shape's poses over a take),
 :mod:`~mocapskel.solvers.parallel` (threads and forked workers), :mod:`~mocapskel.solvers.rest_pose`
 and :mod:`~mocapskel.solvers.joint_moves` (a fitted skeleton's rest pose and moved joints),
-:mod:`~mocapskel.solvers.hull` (convex hulls), and for the outputs :mod:`~mocapskel.solvers.bvh_pose`,
+and for the outputs :mod:`~mocapskel.solvers.bvh_pose`,
 :mod:`~mocapskel.solvers.euler_continuity` and :mod:`~mocapskel.solvers.osim_model`.
 """

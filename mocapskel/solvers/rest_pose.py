@@ -15,12 +15,6 @@ def _rest_markers(skel: Skeleton) -> np.ndarray:
     return pos
 
 
-def _extent(pos: np.ndarray) -> float:
-    """The largest distance between two of the markers ``pos`` (M, 3) (NaN rows left out); 0 for fewer than 2."""
-    P = pos[np.isfinite(pos).all(1)]
-    return float(np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)).max()) if len(P) > 1 else 0.0
-
-
 def _bone_line(skel: Skeleton, s: int) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Segment ``s``'s joint, the unit direction to the mean of its child joints and that length;
     None for a root, a leaf or a zero length."""

@@ -261,14 +261,13 @@ def run(joints: Joints, params: Params = Params()) -> Skeleton:
             joints = without_unfittable(joints, err)
     if params.refine_frames > 0:
         skel = _map_fit(joints, skel, rest, parent, parent_edge, order, params)
-    return _with_uncertainty(_with_lengths(skel), skel, params)
+    return _with_uncertainty(_with_lengths(skel), params)
 
 
-def _with_uncertainty(skel: Skeleton, refined: Skeleton, params: Params) -> Skeleton:
-    """``skel`` with every joint's uncertainty in ``info["uncertainty"]`` (``refined``: the refinement's
-    skeleton, whose poses it starts from)."""
+def _with_uncertainty(skel: Skeleton, params: Params) -> Skeleton:
+    """``skel`` with every joint's uncertainty in ``info["uncertainty"]``, at the refinement's poses."""
     if params.uncertainty:
-        got = skeleton_uncertainty(skel, refined)
+        got = skeleton_uncertainty(skel)
         if got is not None:
             skel = replace(skel, info=dict(skel.info, uncertainty=got))
     return skel

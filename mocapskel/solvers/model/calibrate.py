@@ -439,10 +439,8 @@ def refine_skeleton(
             if parent[int(c)] >= 0]
     if held and hold_weights is None:
         raise ValueError("hold_along needs hold_weights")
-    if prior_weights is None:
-        A, k_prior = np.zeros((0, ng)), 0.0
-    else:
-        A, k_prior = _joint_prior_operator(pr, parent, weights=np.asarray(prior_weights, dtype=float)), 1.0
+    A = np.zeros((0, ng)) if prior_weights is None else _joint_prior_operator(
+        pr, parent, weights=np.asarray(prior_weights, dtype=float))
     # the held joints' positions along their axes relative to each of their segments' marker centroids
     rows = []
     for c, a in held:
@@ -450,7 +448,6 @@ def refine_skeleton(
         wc[c] = hold_weights[c]
         Ac = _joint_prior_operator(pr, parent, {c}, weights=wc)
         rows.extend(a @ Ac[k : k + 3] for k in range(0, Ac.shape[0], 3))
-    k_hold = 1.0
     Hh = np.array(rows).reshape(-1, ng)
     if anchor is None:
         g0 = _pack(pr, d, l)
@@ -465,10 +462,10 @@ def refine_skeleton(
         c = pr.cost(p_, R_, d_, l_) + float(np.sum(ws * p_[:, 3:] ** 2))
         if Hh.shape[0]:
             r = Hh @ _pack(pr, d_, l_) - h0
-            c += k_hold * float(r @ r)
-        if k_prior > 0 and A.shape[0]:
+            c += float(r @ r)
+        if A.shape[0]:
             r = A @ _pack(pr, d_, l_) - u0
-            c += k_prior * float(r @ r)
+            c += float(r @ r)
         if T.shape[0]:
             r = T @ _pack(pr, d_, l_)
             c += float(r @ r)
@@ -534,11 +531,11 @@ def refine_skeleton(
                         Hgg += Hgg_f
                         bg += bg_f
                     if Hh.shape[0]:
-                        Hgg += k_hold * (Hh.T @ Hh)
-                        bg += k_hold * (Hh.T @ (Hh @ _pack(pr, d, l) - h0))
-                    if k_prior > 0 and A.shape[0]:
-                        Hgg += k_prior * (A.T @ A)
-                        bg += k_prior * (A.T @ (A @ _pack(pr, d, l) - u0))
+                        Hgg += Hh.T @ Hh
+                        bg += Hh.T @ (Hh @ _pack(pr, d, l) - h0)
+                    if A.shape[0]:
+                        Hgg += A.T @ A
+                        bg += A.T @ (A @ _pack(pr, d, l) - u0)
                     if T.shape[0]:
                         Hgg += T.T @ T
                         bg += T.T @ (T @ _pack(pr, d, l))

@@ -63,7 +63,6 @@ import numpy as np
 from .calibrate import _exp, _hat, _hold_reference, _Problem
 from .effective import frames_per_independent
 from .skin import skin_motion
-from ..joint_moves import _repose
 from ..parallel import run_blocks
 from ..rotations import matrix_to_rotvec
 
@@ -595,13 +594,11 @@ def _axes(pr: _Problem, R: np.ndarray, l: np.ndarray, kids: np.ndarray, free: np
     return turned, lacks
 
 
-def skeleton_uncertainty(skel, refined=None) -> dict | None:
+def skeleton_uncertainty(skel) -> dict | None:
     """The uncertainty of every joint of a fitted skeleton (a ``Skeleton``), JSON-able, or None when the
     skeleton carries no poses of a refinement to measure it on.
 
-    The poses are those of the refinement's frames; when ``skel`` differs from ``refined`` (the
-    refinement's output, before rules that moved joints after it) they are solved again by IK with
-    ``skel``, from the refinement's. Keys: ``prior`` (its scale and the threshold of ``set_by_prior``),
+    The poses are those of the refinement's frames, as the fit left them. Keys: ``prior`` (its scale and the threshold of ``set_by_prior``),
     ``noise_mm`` and ``dof`` (the take's noise from the fit's residual), ``frames``, ``skin_share`` (the share
     of the residual the joint angles explain, :class:`~mocapskel.solvers.model.skin.SkinMotion`: skin that slides
     with the joints, which the noise above does not describe; None where it cannot be measured), ``seconds`` and
@@ -618,16 +615,11 @@ def skeleton_uncertainty(skel, refined=None) -> dict | None:
         return None
     pts = skel.joints.topology.segments.markers.points[skel.pose_frames]
     rot, root = skel.pose_rot, skel.pose_root
-    moved = refined is not None and not (np.array_equal(skel.origin, refined.origin)
-                                         and np.array_equal(skel.marker_local, refined.marker_local, equal_nan=True))
-    if moved:
-        res = _repose(skel, skel.origin, skel.marker_local, pts)
-        rot, root = res.rot, res.root_pos
     ref = int(np.searchsorted(skel.pose_frames, skel.rest_frame))
     if not (ref < skel.pose_frames.size and skel.pose_frames[ref] == skel.rest_frame):
         return None
     fit = skel.info.get("refined") or {}
-    soft = {} if moved else {skel.names.index(n): v for n, v in (fit.get("soft_sigma_mm") or {}).items()}
+    soft = {skel.names.index(n): v for n, v in (fit.get("soft_sigma_mm") or {}).items()}
     u = joint_uncertainty(skel.parent, skel.origin, skel.marker_segment, skel.marker_local, pts, rot, root,
                           ref_frame=ref, frames_per_independent=frames_per_independent(skel), soft=soft,
                           soft_noise=float(fit.get("soft_noise_mm", 1.0)))
