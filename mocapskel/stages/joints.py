@@ -180,6 +180,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
         fitted = dict(zip([-1] + todo, run_forked(fit_job, [-1] + todo))) if todo else {}
         if todo:
             tree = fitted[-1]
+        refine = []  # (edge, kept candidate, both segments' markers, alpha, pose) for held_refined
         for e in todo:
             a, b = edges[e]
             na, nb = groups[a].shape[1], groups[b].shape[1]
@@ -205,7 +206,7 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             k = int(np.argmin(costs)) if np.isfinite(costs).any() else 0
             name, centres[:, e], why = cands[k]
             if params.hold_refine and pose is not None and np.isfinite(costs[k]):
-                centres[:, e] = held_refined(centres[:, e], both, w, pose, diag)
+                refine.append((e, centres[:, e], both, w, pose))
             methods[e], done[e] = name, True
             if len(cands) > 1:
                 why += f"; the lowest joint cost of {', '.join(n for n, _, _ in cands)}"
@@ -214,6 +215,9 @@ def run(topology: Topology, params: Params = Params()) -> Joints:
             per_joint[e]["why"] = why
             if name == "jmv" and not fit.ok:
                 per_joint[e]["note"] = fit.reason
+        # each kept candidate moved to its least held cost: independent searches, side by side
+        for (e, *_), c in zip(refine, run_forked(lambda job: held_refined(*job[1:], diag), refine)):
+            centres[:, e] = c
     if params.method == "jmv":
         for e, (a, b) in enumerate(edges):
             fit = jmv_joint_long(groups[a], groups[b], alpha=alpha, max_frames=params.jmv_frames)

@@ -17,7 +17,7 @@ from ..errors import DataError
 from ..model.leave_out import cut_off, leave_out, segment_words
 from ..model.tree import depth_first_order
 from ..model.naming import segment_names
-from ..solvers.model.joint_map import SKIN_Z, map_refine, noise_sigma, residual_correlation
+from ..solvers.model.joint_map import SKIN_Z, map_refine, map_setup, noise_sigma, residual_correlation
 from ..solvers.model.links import with_links
 from ..solvers.parallel import run_forked
 from ..solvers.rigid_shape import procrustes_shape
@@ -302,16 +302,30 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         starts = with_links(joints, starts, dict(model, iterations=params.weight_iterations, soft_sigma=0.0,
                                                  gross=False), params.refine_frames)
 
+    setups: list = [None] * len(starts)  # each start's map_setup, made by its first fit and kept for the others
+
     def one(i: int, soft_sigma: float, inflate: float, kw: dict, skin: list | None):
         c, st = starts[i]
+        setup = setups[i]
+        if setup is None:
+            setup = map_setup(st, c, frames=model["frames"], mean=model["mean"], like_widths=model["like_widths"],
+                              ratio=model["hinge_ratio"] if model["mean_ratio"] is None else model["mean_ratio"],
+                              within=model["within"])
         out = map_refine(st, c, soft_sigma=soft_sigma, data_inflate=inflate, skin=None if skin is None else skin[i],
-                         **dict(model, **kw))
-        return replace(out, joints=None)  # sent back from a forked process: without the take
+                         setup=setup, **dict(model, **kw))
+        return replace(out, joints=None), setup  # sent back from a forked process: without the take
 
-    def fit_starts(soft_sigma: float, inflate: float = 1.0, skin: list | None = None,
+    def fit_starts(soft_sigma: float, inflate: float = 1.0, skin: list | None = None, forked: bool = True,
                    **kw) -> tuple[list[Skeleton], list[float], int]:
-        outs = [replace(o, joints=joints)
-                for o in run_forked(lambda i: one(i, soft_sigma, inflate, kw, skin), range(len(starts)))]
+        # forked: the starts side by side, one core each (fits of a fixed number of iterations take about as long
+        # as each other); else one after another, each fit's frames shared out among the cores (fits that stop at a
+        # tolerance: one start's fit took 60 iterations, the other's 24, and one core sat idle for the difference)
+        fit = (lambda i: one(i, soft_sigma, inflate, kw, skin))
+        got = run_forked(fit, range(len(starts))) if forked else [fit(i) for i in range(len(starts))]
+        outs = []
+        for i, (o, setup) in enumerate(got):
+            outs.append(replace(o, joints=joints))
+            setups[i] = setup
         if any("refined" not in o.info for o in outs):  # too few frames to refine: the first start as it is
             return outs, [], 0
         nlp = [o.info["refined"]["neg_log_posterior"] for o in outs]
@@ -332,9 +346,10 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         kappa = joint_overdispersion(outs[win])
         if params.skin_once:
             z1 = outs[win].info["refined"]["skin_z"]
-            outs, nlp, win = fit_starts(params.soft_sigma, kappa, skin=[z1] * len(outs), retest=False)
+            outs, nlp, win = fit_starts(params.soft_sigma, kappa, skin=[z1] * len(outs), retest=False, forked=False)
         else:
-            outs, nlp, win = fit_starts(params.soft_sigma, kappa, skin=[o.info["refined"]["skin_z"] for o in outs])
+            outs, nlp, win = fit_starts(params.soft_sigma, kappa, skin=[o.info["refined"]["skin_z"] for o in outs],
+                                        forked=False)
     if not nlp:
         return outs[0]
     best = outs[win]
@@ -344,7 +359,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         # every frame at full weight: the residual does not follow the pose here (the skin test), and the factor was
         # measured on the refinement's frames (with it, a functional knee trial whose still body is not rigid, factor 21,
         # lost 15 mm)
-        more = map_refine(st, c, fitted=best, more=params.rigid_frames, **model)
+        more = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], **model)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],

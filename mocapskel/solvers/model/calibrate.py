@@ -157,7 +157,7 @@ class _Problem:
         share no marker below both, so their block of a frame's pose Hessian is zero, and a limb's
         rows of ``X`` are zero outside the columns of its markers and of the joints on their paths
         (plus the right-hand side): ``trunk`` (pose indices) and ``limbs`` [(pose indices, columns
-        of X)] say which.
+        of X, those columns' runs of consecutive ones as (first, end, place among them))] say which.
         """
         S, parent = self.S, self.parent
         trunk = set()
@@ -181,7 +181,11 @@ class _Problem:
             bones = np.flatnonzero(self.sub[mk].any(0)) if mk.size else np.zeros(0, dtype=int)
             cols = np.concatenate([(3 * bones[:, None] + np.arange(3)).ravel(),
                                    (self.nd + 3 * mk[:, None] + np.arange(3)).ravel(), [self.ng]]).astype(int)
-            self.limbs.append((rows(segs), cols))
+            cut = np.flatnonzero(np.diff(cols) != 1) + 1
+            starts = np.concatenate([[0], cut])
+            ends = np.concatenate([cut, [cols.size]])
+            runs = [(int(cols[i]), int(cols[j - 1]) + 1, int(i)) for i, j in zip(starts, ends)]
+            self.limbs.append((rows(segs), cols, runs))
 
     def eliminate(self, D: np.ndarray, X: np.ndarray):
         """Schur complement of a chunk's pose blocks: ``X^T D^-1 X`` summed over its frames.
@@ -199,13 +203,15 @@ class _Problem:
         Xc = X[:, rc]
         YY = np.zeros((X.shape[2], X.shape[2]))
         parts = []
-        for rk, ck in self.limbs:
+        for rk, ck, runs in self.limbs:
             Lki = np.linalg.inv(np.linalg.cholesky(D[:, rk[:, None], rk[None, :]]))
             Wk = Lki @ D[:, rk[:, None], rc[None, :]]
             Yk = Lki @ X[:, rk[:, None], ck[None, :]]
             WkT = Wk.transpose(0, 2, 1)
             Dc = Dc - WkT @ Wk
-            Xc[:, :, ck] -= WkT @ Yk
+            M = WkT @ Yk
+            for a, b, i in runs:  # ck's runs of consecutive columns: slices, not a gather and a scatter
+                Xc[:, :, a:b] -= M[:, :, i : i + b - a]
             Y2 = Yk.reshape(-1, ck.size)
             YY[ck[:, None], ck[None, :]] += Y2.T @ Y2
             parts.append((Lki, Wk, Yk))
@@ -222,7 +228,7 @@ class _Problem:
         out = np.empty((n, self.nf))
         zc = (Lci.transpose(0, 2, 1) @ (Yc @ dg1)[..., None])[..., 0]
         out[:, self.trunk] = -zc
-        for (rk, ck), (Lki, Wk, Yk) in zip(self.limbs, parts):
+        for (rk, ck, _), (Lki, Wk, Yk) in zip(self.limbs, parts):
             v = Yk @ dg1[ck] - (Wk @ zc[..., None])[..., 0]
             out[:, rk] = -(Lki.transpose(0, 2, 1) @ v[..., None])[..., 0]
         return out
@@ -337,8 +343,10 @@ class _Problem:
         X.reshape(n, -1)[:, self.xl_at] = (Hu @ Rw[:, self.fi]).reshape(n, -1)
         if self.soft:  # a soft joint's rows: R_parent^T w R_t for each marker below it
             Rs = R[sl][:, self.parent[self.soft]]
-            El = np.einsum("nika,nmkb->niamb", Rs, Rw) * self.below.T[None, :, None, :, None]
-            X[:, 3 * (S + 1) :, nd:ng] = El.reshape(n, 3 * len(self.soft), 3 * U)
+            ns = len(self.soft)
+            El = (Rs.transpose(0, 1, 3, 2).reshape(n, 3 * ns, 3) @ Rw.transpose(0, 2, 1, 3).reshape(n, 3, 3 * U))
+            X[:, 3 * (S + 1) :, nd:ng] = (El.reshape(n, ns, 3, U, 3) * self.below.T[None, :, None, :, None]).reshape(
+                n, 3 * ns, 3 * U)
         Hgg = np.zeros((ng, ng))
         # bone-bone: joints c, e share the visible markers below both
         both = (w @ self.sub2.reshape(U, nk * nk)).reshape(n, nk, 1, nk, 1)

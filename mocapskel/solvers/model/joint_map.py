@@ -70,7 +70,7 @@ posterior is kept.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -331,13 +331,48 @@ def _without_gross(start: Skeleton, origin: np.ndarray, marker_local: np.ndarray
     return out, int(mask.sum()), t2
 
 
+@dataclass(frozen=True, eq=False)
+class MapSetup:
+    """What every fit of one start shares (:func:`map_setup`): the refinement's frames ``use``, the start's pose on
+    them (``rot``, ``root_pos``: its IK) and ``centre``, the start with its joints' prior means (deepened, leaf-centred,
+    within the limb), without the take (``joints`` None: small enough to send between processes)."""
+
+    use: np.ndarray
+    rot: np.ndarray
+    root_pos: np.ndarray
+    centre: Skeleton
+
+
+def map_setup(start: Skeleton, centres: np.ndarray, *, frames: int, mean: str = "deepened", ratio: float = 0.6,
+              like_widths: bool = True, within: bool = False) -> MapSetup | None:
+    """The refinement's frames, ``start`` posed on them from ``centres`` (F, E, 3), and the prior's centre: ``start``'s
+    joints, deepened (``mean`` "deepened"), then leaf-centred ("deepened+leaf"), by the hinge test ``ratio``, and with
+    ``within`` brought within their limb (see :func:`map_refine`). None where the take is too short to refine (under
+    10 frames)."""
+    pts = start.joints.topology.segments.markers.points
+    use = refinement_frames(start, frames)
+    if use.size < 10:
+        return None
+    pose = solve(start, pts[use], _centres_by_edges(start, centres)[use])
+    centre = start
+    if mean in ("deepened", "deepened+leaf"):
+        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), ratio,
+                               like=like_bone_pairs(start) if like_widths else None)
+    if mean == "deepened+leaf":
+        centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
+    if within:  # joints the estimators left beyond their markers along their axis
+        centre = within_markers(centre, ratio, set(centre.info.get("deepened", {})) | set(centre.info.get("leaf_centred", {})))
+    return MapSetup(use, pose.rot, pose.root_pos, replace(centre, joints=None))
+
+
 def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations: int, scale: float, noise: float,
                mean: str = "deepened", hinge_ratio: float = 0.6, rho: np.ndarray | None = None,
                bone_sigma: float = 0.0, hinge_scale: float = 0.0, hinge_placed: bool = True,
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
                soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True,
-               retest: bool = True, pose_trust: float = 0.0, within: bool = False) -> Skeleton:
+               retest: bool = True, pose_trust: float = 0.0, within: bool = False,
+               setup: MapSetup | None = None) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
     ``info["refined"]`` holds the negative log posterior (``neg_log_posterior``, up to a constant common to
@@ -363,23 +398,17 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
     ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
-    (:func:`~mocapskel.solvers.priors.deepen.like_half_widths`)."""
+    (:func:`~mocapskel.solvers.priors.deepen.like_half_widths`). ``setup``: :func:`map_setup`'s answer for these
+    ``start``, ``centres``, ``frames``, ``mean``, hinge test, ``like_widths`` and ``within`` (made here when None)."""
     pts = start.joints.topology.segments.markers.points
-    use = refinement_frames(start, frames)
-    if use.size < 10:
+    if setup is None:
+        setup = map_setup(start, centres, frames=frames, mean=mean,
+                          ratio=hinge_ratio if mean_ratio is None else mean_ratio, like_widths=like_widths, within=within)
+    if setup is None:
         return start
+    use, pose = setup.use, setup
     ref = int(np.searchsorted(use, start.rest_frame))
-    c = _centres_by_edges(start, centres)
-    pose = solve(start, pts[use], c[use])
-    centre = start
-    ratio = hinge_ratio if mean_ratio is None else mean_ratio  # the mean's hinge test
-    if mean in ("deepened", "deepened+leaf"):
-        centre = deepen_joints(replace(start, pose_frames=use, pose_rot=pose.rot, pose_root=pose.root_pos), ratio,
-                               like=like_bone_pairs(start) if like_widths else None)
-    if mean == "deepened+leaf":
-        centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
-    if within:  # joints the estimators left beyond their markers along their axis
-        centre = within_markers(centre, ratio, set(centre.info.get("deepened", {})) | set(centre.info.get("leaf_centred", {})))
+    centre = replace(setup.centre, joints=start.joints)
     sn = noise
     sig = prior_sigmas(centre, scale)
     n_eff = float(use.size) if rho is None else min(float(use.size), max(1.0, effective_frames(rho, use)))
@@ -419,7 +448,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     obs, n_gross, t2 = None, 0, 0.0
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
         use = refinement_frames(start, more, stride=1)  # noise alone: every frame of a short take adds to the data
-        pose = solve(fitted, pts[use], c[use])
+        pose = solve(fitted, pts[use], _centres_by_edges(start, centres)[use])
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
         base = fitted
         if gross:  # the fitted skeleton's residual on these frames says which are gross: one fit instead of two
