@@ -392,6 +392,29 @@ def test_a_skin_test_carried_from_the_first_map_gives_the_same_fit(monkeypatch):
     np.testing.assert_allclose(carried.marker_local, again.marker_local, atol=1e-9, equal_nan=True)
 
 
+def test_each_start_is_set_up_once_and_fits_as_if_set_up_anew(monkeypatch):
+    """A start's frames, IK pose and prior means (``map_setup``) are made by its first fit and handed to the later
+    ones: the same skeleton, bit for bit, as each fit making its own, with one setup per start instead of one per fit."""
+    import mocapskel.stages.rigid as rigid_stage
+
+    take = make(realistic(seed=2, frames=300, motion="kick", markerset="cmu41"))
+    j = pipeline.run_until(evaluate.true_topology(take.truth, pipeline.run_until(take.markers, "clean").artifact), "joints").artifact
+    fit = {"rigid": rigid.Params(uncertainty=False)}
+    monkeypatch.setattr(rigid_stage, "run_forked", lambda fn, items: [fn(x) for x in items])  # calls counted here
+    made = []
+    setup = rigid_stage.map_setup
+    monkeypatch.setattr(rigid_stage, "map_setup", lambda *a, **k: made.append(1) or setup(*a, **k))
+    once = pipeline.run_until(j, "rigid", fit).artifact
+    starts = len(once.info["refined"]["neg_log_posterior_starts"])
+    assert starts == 2 and len(made) == starts  # two fits a start: the first MAP and the fit that counts
+    orig = rigid_stage.map_refine
+    monkeypatch.setattr(rigid_stage, "map_refine", lambda *a, setup=None, **k: orig(*a, **k))
+    anew = pipeline.run_until(j, "rigid", fit).artifact
+    np.testing.assert_array_equal(once.origin, anew.origin)
+    np.testing.assert_array_equal(once.marker_local, anew.marker_local)
+    assert once.info["refined"]["neg_log_posterior"] == anew.info["refined"]["neg_log_posterior"]
+
+
 def test_a_knee_left_beyond_its_limb_along_its_axis_has_its_prior_at_the_limbs_edge():
     """A gait lab's walk (seed 4) whose left shank and foot are grouped as one segment: the joints stage puts the
     knee between the two-marker thigh and that segment 430 mm out along its flexion axis, where the markers do not
