@@ -181,6 +181,31 @@ def test_noise_from_the_markers_alone():
     assert noise_sigma(take.markers.points, np.asarray(take.truth.marker_segment)) == 0.1
 
 
+def test_noise_of_a_take_of_two_marker_segments_from_their_distances():
+    """With no segment of three markers, the noise comes from the pairs' distances: the generator's 1 mm (and 3 mm)
+    Gaussian noise within 10 %, where the rigid shapes find nothing and the floor (0.1 mm) was taken."""
+    for sigma in (1.0, 3.0):
+        take = make(Recipe(kind="human", seed=4, frames=600, noise_mm=sigma, markers_per_segment=2))
+        assert np.bincount(take.truth.marker_segment).max() == 2
+        got = noise_sigma(take.markers.points, np.asarray(take.truth.marker_segment))
+        assert got == pytest.approx(sigma, rel=0.10)
+
+
+def test_a_two_marker_range_of_motion_is_tested_for_skin_at_the_fit_that_counts():
+    """Where no joint could be soft (every segment of two markers), the fit that counts is rigid, and the skin test
+    carried from the first MAP (20 iterations, z 6.95 on this take) is made again at it (z below 3): the fit on more
+    frames follows, and the joints come within the issue's bar for two markers a segment (6 mm; 11.0 mm when the
+    carried test was kept, 3.6 mm measured)."""
+    take = make(active_rom(5, frames=3600, markers_per_segment=2))
+    mot = pipeline.run_until(take.markers, "ik", {"rigid": rigid.Params(uncertainty=False)}).artifact
+    ref = mot.skeleton.info["refined"]
+    assert not ref["soft_sigma_mm"] and ref["skin_z"] <= 3.0 and ref["frames"] > 300
+    sc = evaluate.score_motion(mot, take.truth)
+    assert sc.segments_ok and len(sc.joint_rms_each) == 14
+    assert sc.joint_rms_mm <= 6.0, sc.joint_rms_each
+    assert all(abs(v) < 0.05 for v in sc.bone_err.values()), sc.bone_err
+
+
 def test_joint_model_must_be_map():
     take = make(Recipe(kind="human", seed=1, frames=300))
     for other in ("bayes", "rules"):  # the rules were removed

@@ -25,7 +25,7 @@ from ..solvers.rotations import rotation_between
 from ..solvers.model.uncertainty import skeleton_uncertainty
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 28
+VERSION = 29
 
 
 @dataclass(frozen=True)

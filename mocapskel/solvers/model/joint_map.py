@@ -104,7 +104,10 @@ def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
     """The take's marker noise per axis (mm), from the markers alone (not the joints, which differ
     between starts): every segment of three or more markers fitted as one rigid shape over the frames
     ``points`` (F, M, 3), the residual sum of squares over its degrees of freedom (3 per seen marker,
-    less 6 for each frame's pose); at least :data:`NOISE_FLOOR_MM`."""
+    less 6 for each frame's pose). Where no segment has three, the two-marker segments' distances: noise of
+    sigma per axis on both markers spreads their distance by 2 sigma^2 (its component along their line), so
+    half the squared deviations from the mean distance, over the frames seen less one. At least
+    :data:`NOISE_FLOOR_MM`."""
     sse, dof = 0.0, 0.0
     for s in np.unique(group[group >= 0]):
         obs = points[:, group == s]
@@ -115,6 +118,16 @@ def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
         ok = np.isfinite(rms) & (n >= 3)
         sse += float(np.sum(rms[ok] ** 2 * n[ok]))
         dof += float(np.sum(3 * n[ok] - 6))
+    if dof <= 0:  # no segment of three: the pairs' distances
+        for s in np.unique(group[group >= 0]):
+            obs = points[:, group == s]
+            if obs.shape[1] != 2:
+                continue
+            d = np.linalg.norm(obs[:, 0] - obs[:, 1], axis=-1)
+            d = d[np.isfinite(d)]
+            if d.size > 1:
+                sse += 0.5 * float(np.sum((d - d.mean()) ** 2))
+                dof += d.size - 1
     return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
 
 
@@ -392,8 +405,9 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
     independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
-    :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone; at or below it, with
-    ``retest=False``, the rigid fit is made and kept without a test of its own. ``pose_trust``: each frame's own damping
+    :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone (where no joint could be
+    soft, the rigid fit is the one that counts and the test is made at it); at or below it, with ``retest=False``, the
+    rigid fit is made and kept without a test of its own. ``pose_trust``: each frame's own damping
     (``refine_skeleton``'s). ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
@@ -462,7 +476,11 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     if not soft:
         res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local,
                               pts[use] if obs is None else obs, pose.rot, pose.root_pos, **kw)
-    if skin is not None and not retest and res is not None:
+    # the skin test carried from a near posterior's MAP says skin motion, but no joint here could be soft: this rigid
+    # fit is the one that counts, and the test is made at it (the carried one was made at a MAP of 20 iterations)
+    rigid_anyway = (skin is not None and skin > SKIN_Z and soft_sigma > 0 and fitted is None and res is not None
+                    and not _soft_joints(start, soft_sigma))
+    if skin is not None and not retest and res is not None and not rigid_anyway:
         skin_z = skin
     elif soft_sigma > 0 and fitted is None and res is not None:
         # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
