@@ -308,9 +308,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         c, st = starts[i]
         setup = setups[i]
         if setup is None:
-            setup = map_setup(st, c, frames=model["frames"], mean=model["mean"], like_widths=model["like_widths"],
-                              ratio=model["hinge_ratio"] if model["mean_ratio"] is None else model["mean_ratio"],
-                              within=model["within"])
+            setup = map_setup(st, c, **{k: model[k] for k in ("frames", "mean", "hinge_ratio", "mean_ratio",
+                                                               "like_widths", "within")})
         out = map_refine(st, c, soft_sigma=soft_sigma, data_inflate=inflate, skin=None if skin is None else skin[i],
                          setup=setup, **dict(model, **kw))
         return replace(out, joints=None), setup  # sent back from a forked process: without the take

@@ -108,27 +108,23 @@ def noise_sigma(points: np.ndarray, group: np.ndarray) -> float:
     sigma per axis on both markers spreads their distance by 2 sigma^2 (its component along their line), so
     half the squared deviations from the mean distance, over the frames seen less one. At least
     :data:`NOISE_FLOOR_MM`."""
-    sse, dof = 0.0, 0.0
+    sse, dof = np.zeros(2), np.zeros(2)  # [segments of three or more, pairs]
     for s in np.unique(group[group >= 0]):
         obs = points[:, group == s]
-        if obs.shape[1] < 3:
-            continue
-        _, _, _, rms = procrustes_shape(obs)
-        n = np.isfinite(obs).all(-1).sum(1)
-        ok = np.isfinite(rms) & (n >= 3)
-        sse += float(np.sum(rms[ok] ** 2 * n[ok]))
-        dof += float(np.sum(3 * n[ok] - 6))
-    if dof <= 0:  # no segment of three: the pairs' distances
-        for s in np.unique(group[group >= 0]):
-            obs = points[:, group == s]
-            if obs.shape[1] != 2:
-                continue
+        if obs.shape[1] >= 3:
+            _, _, _, rms = procrustes_shape(obs)
+            n = np.isfinite(obs).all(-1).sum(1)
+            ok = np.isfinite(rms) & (n >= 3)
+            sse[0] += float(np.sum(rms[ok] ** 2 * n[ok]))
+            dof[0] += float(np.sum(3 * n[ok] - 6))
+        elif obs.shape[1] == 2:
             d = np.linalg.norm(obs[:, 0] - obs[:, 1], axis=-1)
             d = d[np.isfinite(d)]
             if d.size > 1:
-                sse += 0.5 * float(np.sum((d - d.mean()) ** 2))
-                dof += d.size - 1
-    return max(float(np.sqrt(sse / dof)) if dof > 0 else 0.0, NOISE_FLOOR_MM)
+                sse[1] += 0.5 * float(np.sum((d - d.mean()) ** 2))
+                dof[1] += d.size - 1
+    k = 0 if dof[0] > 0 else 1  # the pairs only where no segment has three
+    return max(float(np.sqrt(sse[k] / dof[k])) if dof[k] > 0 else 0.0, NOISE_FLOOR_MM)
 
 
 def residual_correlation(points: np.ndarray, group: np.ndarray) -> np.ndarray:
@@ -356,12 +352,13 @@ class MapSetup:
     centre: Skeleton
 
 
-def map_setup(start: Skeleton, centres: np.ndarray, *, frames: int, mean: str = "deepened", ratio: float = 0.6,
-              like_widths: bool = True, within: bool = False) -> MapSetup | None:
+def map_setup(start: Skeleton, centres: np.ndarray, *, frames: int, mean: str = "deepened", hinge_ratio: float = 0.6,
+              mean_ratio: float | None = None, like_widths: bool = True, within: bool = False) -> MapSetup | None:
     """The refinement's frames, ``start`` posed on them from ``centres`` (F, E, 3), and the prior's centre: ``start``'s
-    joints, deepened (``mean`` "deepened"), then leaf-centred ("deepened+leaf"), by the hinge test ``ratio``, and with
-    ``within`` brought within their limb (see :func:`map_refine`). None where the take is too short to refine (under
-    10 frames)."""
+    joints, deepened (``mean`` "deepened"), then leaf-centred ("deepened+leaf"), by the hinge test ``mean_ratio`` (None:
+    ``hinge_ratio``), and with ``within`` brought within their limb (the keywords as :func:`map_refine`'s). None where
+    the take is too short to refine (under 10 frames)."""
+    ratio = hinge_ratio if mean_ratio is None else mean_ratio
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
     if use.size < 10:
@@ -416,8 +413,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     ``start``, ``centres``, ``frames``, ``mean``, hinge test, ``like_widths`` and ``within`` (made here when None)."""
     pts = start.joints.topology.segments.markers.points
     if setup is None:
-        setup = map_setup(start, centres, frames=frames, mean=mean,
-                          ratio=hinge_ratio if mean_ratio is None else mean_ratio, like_widths=like_widths, within=within)
+        setup = map_setup(start, centres, frames=frames, mean=mean, hinge_ratio=hinge_ratio, mean_ratio=mean_ratio,
+                          like_widths=like_widths, within=within)
     if setup is None:
         return start
     use, pose = setup.use, setup
@@ -469,17 +466,17 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             obs, n_gross, t2 = _without_gross(start, fitted.origin, fitted.marker_local, pose.rot, pose.root_pos,
                                               pts[use])
     skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
-    if skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z:
+    carried = skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z
+    if carried:
         # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
         # soft fit alone
         skin_z, soft, res = skin, _soft_joints(start, soft_sigma), None
     if not soft:
         res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local,
                               pts[use] if obs is None else obs, pose.rot, pose.root_pos, **kw)
-    # the skin test carried from a near posterior's MAP says skin motion, but no joint here could be soft: this rigid
-    # fit is the one that counts, and the test is made at it (the carried one was made at a MAP of 20 iterations)
-    rigid_anyway = (skin is not None and skin > SKIN_Z and soft_sigma > 0 and fitted is None and res is not None
-                    and not _soft_joints(start, soft_sigma))
+    # the carried test says skin motion, but no joint here could be soft: this rigid fit is the one that counts, and
+    # the test is made at it (the carried one was made at a MAP of 20 iterations)
+    rigid_anyway = carried and not soft
     if skin is not None and not retest and res is not None and not rigid_anyway:
         skin_z = skin
     elif soft_sigma > 0 and fitted is None and res is not None:
