@@ -129,3 +129,39 @@ def test_soft_offsets_give_back_the_fits_marker_residual():
                                 res.marker_local) / pr.w.sum())
     assert abs(rms - res.rms[1]) < 1e-3 * res.rms[1], (rms, res.rms)
     assert rms < rigid_rms and 0 < eff < 3 * len(soft) * pts.shape[0]
+
+
+def _wandering_chain(sigma: float, noise: float, frames: int = 800, seed: int = 0):
+    """A root and two children of four markers each, turning at random; in every frame each child's joint sits off
+    its fixed place by N(0, sigma^2) per axis (in its parent's frame), and every marker has noise N(0, noise^2)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    parent = np.array([-1, 0, 1])
+    origin = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -250.0], [0.0, 0.0, -500.0]])
+    seg = np.repeat([0, 1, 2], 4)
+    local = rng.normal(scale=60.0, size=(12, 3)) + np.repeat([[0, 0, 0], [0, 0, -120.0], [0, 0, -120.0]], 4, axis=0)
+    rot = Rotation.from_rotvec(rng.normal(scale=0.6, size=(frames * 3, 3))).as_matrix().reshape(frames, 3, 3, 3)
+    root = rng.normal(scale=300.0, size=(frames, 3))
+    P = np.empty((frames, 3, 3))
+    P[:, 0] = root
+    for c in (1, 2):
+        off = origin[c] - origin[c - 1] + rng.normal(scale=sigma, size=(frames, 3))
+        P[:, c] = P[:, c - 1] + np.einsum("fij,fj->fi", rot[:, c - 1], off)
+    x = P[:, seg] + np.einsum("fmij,mj->fmi", rot[:, seg], local) + rng.normal(scale=noise, size=(frames, 12, 3))
+    return parent, origin, seg, local, x, rot, root
+
+
+def test_how_far_joints_wander_comes_back_from_their_offsets_less_the_noise():
+    """The slack's moments at the true skeleton and poses (``slack_moments``): the offsets' mean square less what the
+    noise gives them is 3 sigma^2, joint by joint, for joints that wander by 2 mm and for joints fixed in place."""
+    from mocapskel.solvers.model.slack import slack_moments
+
+    for sigma in (2.0, 0.0):
+        parent, origin, seg, local, x, rot, root = _wandering_chain(sigma, noise=1.0)
+        e2, tr, n = slack_moments(parent, origin, seg, local, x, rot, root, [1, 2])
+        assert (n == x.shape[0]).all()
+        est = np.sqrt(np.maximum(0.0, (e2 - tr) / (3.0 * n)))  # noise 1 mm: sigma_n^2 = 1
+        assert np.allclose(est, sigma, atol=0.15), (sigma, est)
+        # the noise's share is what the offsets show when nothing wanders
+        assert abs(e2.sum() / tr.sum() - (1.0 + 3.0 * sigma**2 * n.sum() / tr.sum())) < 0.1

@@ -25,7 +25,7 @@ from ..solvers.rotations import rotation_between
 from ..solvers.model.uncertainty import skeleton_uncertainty
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 29
+VERSION = 30
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class Params:
     information (generated walks with rigid markers, 1200 frames: 4.0 / 4.9 -> 2.5 / 3.1 mm; BENCHMARKS, "More frames
     where the rigid model fits"). Where the residual follows the joint angles, more frames only weigh that misfit more
     (the realistic cmu41 takes and the real references lost with them), and the fit keeps ``refine_frames``. At most
-    ``refine_frames``: off."""
+    ``refine_frames``: off. Its joints are soft by the slack measured at the rigid fit (see ``soft_sigma``)."""
     gross_errors: bool = True
     """Where the fit's joints stay rigid (its residual is noise), residuals beyond what that
     noise gives once in a million (a marker swapped or jumping in a frame,
@@ -114,7 +114,13 @@ class Params:
     gains on both halves over three marker sets (sliding clusters most: 46.7 -> 34.2 mm, past the rules' 41.2) and
     every real reference gains (BENCHMARKS, "Soft joints", "Sliding clusters"). Only where the take shows skin motion
     (:data:`~mocapskel.solvers.model.joint_map.SKIN_Z`): a take whose residual does not follow its joint angles keeps
-    rigid joints (the 48-marker range of motion, whose joints are exact: 4.0 -> 2.8 mm)."""
+    rigid joints in the fits that choose the start (the 48-marker range of motion: 4.0 -> 2.8 mm), and in its fit on
+    ``rigid_frames`` its joints wander by as much as they were measured to at the rigid fit, beyond what the noise
+    gives (:func:`~mocapskel.solvers.model.slack.slack_sigma`; ``info["refined"]["slack_sigma_mm"]``): a segment's
+    markers moving together on the skin (the generator's 0.3 of its skin motion: 0.9 mm a joint, measured 0.7-1.0)
+    move a rigid joint along the axis the motion fixes least, away from the markers (the 48-marker range of motion's
+    elbows and knees, 21 of 24 deeper, by 1.8 mm on average: 2.60 / 2.32 -> 2.08 / 1.97 mm; BENCHMARKS, "Joints that
+    wander as far as the take shows"). 0: no soft joints anywhere."""
     line_sigma: float = 0.01
     """A limb's middle joint (a knee between hip and ankle, an elbow between shoulder and
     wrist) lies along the axis it turns about in line with its two neighbours
@@ -358,7 +364,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         # every frame at full weight: the residual does not follow the pose here (the skin test), and the factor was
         # measured on the refinement's frames (with it, a functional knee trial whose still body is not rigid, factor 21,
         # lost 15 mm)
-        more = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], **model)
+        more = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], soft_sigma=params.soft_sigma,
+                          **model)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],

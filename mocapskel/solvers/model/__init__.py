@@ -18,6 +18,8 @@ is left is noise at the take's own level (DESIGN, "One model, not rules").
   (``joint_overdispersion``, the data term's weight);
 - :mod:`mocapskel.solvers.model.skin`: how much of the residual follows the joint angles
   (``skin_motion``), the part of the skin's motion the model's noise does not describe;
+- :mod:`mocapskel.solvers.model.slack`: how far the joints wander about their fixed places (``slack_sigma``), the
+  soft joints' sigma where the residual is noise;
 - :mod:`mocapskel.solvers.model.refinement`: the frames the fits use (``refinement_frames``, ``pick_frames``).
 
 The rigid stage (:mod:`mocapskel.stages.rigid`) calls them; the joints stage gives the starts

@@ -685,4 +685,3 @@ def _joint_prior_operator(pr: _Problem, parent: np.ndarray, only: set | None = N
                     row[pr.gl[m] + k] -= 1.0 / len(ms)
                 rows.append(np.sqrt(w) * row)
     return np.array(rows).reshape(-1, pr.ng)
-

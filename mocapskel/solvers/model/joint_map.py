@@ -46,9 +46,12 @@ Soft joints (optional, ``soft_sigma`` > 0, :func:`_soft_joints`): in each frame 
 three markers or more may sit off its fixed place by a Gaussian offset, a model of marker clusters sliding on the
 skin. Only where the take shows skin motion: the residual of the rigid MAP follows its joint angles (the skin
 regression's ``z``, :func:`~mocapskel.solvers.model.skin.skin_motion`, above ``SKIN_Z``), and the soft MAP is then
-run from the start as the rigid one was; a take whose residual is noise alone keeps the rigid MAP. (The start's
-residual is no test: a joint off its place moves the markers by (I - R) c, a function of the joint angles, and a
-rigid-marker walk scored z = 52 there.)
+run from the start as the rigid one was; a take whose residual is noise alone keeps the rigid MAP, and its fit on
+more frames (``fitted``) lets the joints wander by one sigma for the take measured at that rigid MAP: the moments of
+the joints' least-squares offsets less what the noise gives them (:func:`~mocapskel.solvers.model.slack.slack_sigma`),
+a variance component that is about 0 where the markers ride on rigid bodies and 0.7-1.0 mm where a generated skin
+moves each segment's markers together. (The start's residual is no test: a joint off its place moves the markers
+by (I - R) c, a function of the joint angles, and a rigid-marker walk scored z = 52 there.)
 
 Gross errors: where the joints stay rigid, the noise model is the residual's: a residual beyond what it gives once in a
 million (:func:`~mocapskel.solvers.model.skin.gross_mask`: a marker swapped or jumping in one frame) is left out and
@@ -84,6 +87,7 @@ from ..priors.mirror import mirror_planes
 from ..ik.motion import _centres_by_edges, solve
 from .refinement import refinement_frames
 from .skin import gross_mask, skin_motion
+from .slack import slack_sigma
 from ..joint_moves import _move_joint, _with_moves
 from ..rest_pose import _bone_line, _rest_groups, _rest_markers
 from ..rigid_shape import procrustes_shape
@@ -395,9 +399,10 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     distance from it N(0, sigma_m^2), sigma_m how far the parent's markers are from mirror-symmetric about it.
     With ``fitted`` (this function's rigid output for ``start`` and ``frames``), the same posterior, its prior set up
     as before, is refined from ``fitted`` on :func:`refinement_frames` of ``more`` frames (of a short take, every frame),
-    rigid joints. With ``gross``, a fit whose joints stay rigid (the skin test passed) is made again without its gross
-    residuals (:func:`_without_gross`); with ``fitted``, they are those of ``fitted`` posed on the new frames, left out
-    before the one fit. With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
+    the joints that may be soft wandering by :func:`~mocapskel.solvers.model.slack.slack_sigma` measured there on
+    ``frames`` of them (with ``soft_sigma`` > 0; rigid where it is below :data:`NOISE_FLOOR_MM`). With ``gross``, a
+    fit whose joints stay rigid (the skin test passed) is made again without its gross residuals (:func:`_without_gross`);
+    with ``fitted``, they are those of ``fitted`` posed on the new frames, left out before the one fit. With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
     its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
     term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
     independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
@@ -465,7 +470,15 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         if gross:  # the fitted skeleton's residual on these frames says which are gross: one fit instead of two
             obs, n_gross, t2 = _without_gross(start, fitted.origin, fitted.marker_local, pose.rot, pose.root_pos,
                                               pts[use])
-    skin_z, soft = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}
+    skin_z, soft, res = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}, None
+    slack = None
+    if fitted is not None and soft_sigma > 0:  # how far the joints wander, measured at the fitted skeleton
+        # on as many frames as the fits that chose the start (all 1800 cost 0.8 s more on a 48-marker take)
+        sub = np.unique(np.linspace(0, use.size - 1, min(use.size, frames)).round().astype(int))
+        slack = slack_sigma(start.parent, fitted.origin, start.marker_segment, fitted.marker_local,
+                            (pts[use] if obs is None else obs)[sub], pose.rot[sub], pose.root_pos[sub],
+                            sorted(_soft_joints(start, 1.0)), sn)
+        soft = _soft_joints(start, slack) if slack > NOISE_FLOOR_MM else {}
     carried = skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z
     if carried:
         # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
@@ -485,7 +498,11 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
                              res.root_pos, noise=NOISE_FLOOR_MM).z
         soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
-    if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
+    if soft and fitted is not None:  # from the fitted skeleton, its joints wandering as much as they were measured to
+        res = refine_skeleton(start.parent, fitted.origin, start.marker_segment, fitted.marker_local,
+                              pts[use] if obs is None else obs, pose.rot, pose.root_pos,
+                              soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+    elif soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
         res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                               pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
     before = res.rms[0]
@@ -503,6 +520,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
                        "prior_scale": scale, "neg_log_posterior": nlp, "mean_within_mm": dict(centre.info.get("within_markers", {})), "skin_z": skin_z, "gross_residuals": n_gross,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
+                       "slack_sigma_mm": slack,
                        "prior_sigma_mm": {start.names[k]: [float(x) if np.isfinite(x) else None for x in sig[k]] for k in range(len(start.names))
                                           if start.parent[k] >= 0}}
     return replace(start, origin=res.origin, marker_local=res.marker_local, info=info,
