@@ -402,10 +402,11 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     the joints that may be soft wandering by :func:`~mocapskel.solvers.model.slack.slack_sigma` measured there on
     ``frames`` of them (with ``soft_sigma`` > 0; rigid where it is below :data:`NOISE_FLOOR_MM`). With ``gross``, a
     fit whose joints stay rigid (the skin test passed) is made again without its gross residuals (:func:`_without_gross`);
-    with ``fitted``, they are those of ``fitted`` posed on the new frames, left out before the one fit. With ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along
-    its axis in line with its neighbours, N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data
-    term is divided by ``data_inflate`` on top of that (the noise variance it assumes times it: frames worth less than
-    independent ones, :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
+    with ``fitted``, they are those of ``fitted`` posed on the new frames, left out before the one fit. With
+    ``line_sigma`` > 0, each limb's middle joint (:func:`limb_lines`) lies along its axis in line with its neighbours,
+    N(0, sigma_l^2) off it, sigma_l = ``line_sigma`` x their distance. The data term is divided by ``data_inflate``
+    on top of that (the noise variance it assumes times it: frames worth less than independent ones,
+    :func:`~mocapskel.solvers.model.worth.joint_overdispersion`). ``skin``: the skin test's z already
     measured for this start at a near posterior's MAP (the same take with the data weighed otherwise); above
     :data:`SKIN_Z` the rigid fit it would be measured at is skipped and the soft fit made alone (where no joint could be
     soft, the rigid fit is the one that counts and the test is made at it); at or below it, with ``retest=False``, the
@@ -460,51 +461,53 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         hold, hold_w = _hinge_priors(start, centre, pose.rot, pts[use], hinge_ratio, hinge_scale, inflate * sn**2, placed)
     kw = dict(ref_frame=ref, iterations=iterations, prior_weights=w, anchor=(centre.origin, centre.marker_local),
               like_bones=ties, hold_along=hold, hold_weights=hold_w, planes=planes, lines=lines, pose_trust=pose_trust)
-    base = start
     obs, n_gross, t2 = None, 0, 0.0
+    skin_z, soft, slack = float("nan"), {}, None
     if fitted is not None:  # the prior as set up above; the data on the frames asked for, from the fitted joints
         use = refinement_frames(start, more, stride=1)  # noise alone: every frame of a short take adds to the data
         pose = solve(fitted, pts[use], _centres_by_edges(start, centres)[use])
         kw["ref_frame"] = int(np.searchsorted(use, start.rest_frame))
-        base = fitted
         if gross:  # the fitted skeleton's residual on these frames says which are gross: one fit instead of two
             obs, n_gross, t2 = _without_gross(start, fitted.origin, fitted.marker_local, pose.rot, pose.root_pos,
                                               pts[use])
-    skin_z, soft, res = float("nan") if fitted is None else fitted.info["refined"]["skin_z"], {}, None
-    slack = None
-    if fitted is not None and soft_sigma > 0:  # how far the joints wander, measured at the fitted skeleton
-        # on as many frames as the fits that chose the start (all 1800 cost 0.8 s more on a 48-marker take)
-        sub = np.unique(np.linspace(0, use.size - 1, min(use.size, frames)).round().astype(int))
-        slack = slack_sigma(start.parent, fitted.origin, start.marker_segment, fitted.marker_local,
-                            (pts[use] if obs is None else obs)[sub], pose.rot[sub], pose.root_pos[sub],
-                            sorted(_soft_joints(start, 1.0)), sn)
-        soft = _soft_joints(start, slack) if slack > NOISE_FLOOR_MM else {}
-    carried = skin is not None and soft_sigma > 0 and fitted is None and skin > SKIN_Z
-    if carried:
-        # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
-        # soft fit alone
-        skin_z, soft, res = skin, _soft_joints(start, soft_sigma), None
-    if not soft:
-        res = refine_skeleton(start.parent, base.origin, start.marker_segment, base.marker_local,
-                              pts[use] if obs is None else obs, pose.rot, pose.root_pos, **kw)
-    # the carried test says skin motion, but no joint here could be soft: this rigid fit is the one that counts, and
-    # the test is made at it (the carried one was made at a MAP of 20 iterations)
-    rigid_anyway = carried and not soft
-    if skin is not None and not retest and res is not None and not rigid_anyway:
-        skin_z = skin
-    elif soft_sigma > 0 and fitted is None and res is not None:
-        # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
-        # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
-        skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
-                             res.root_pos, noise=NOISE_FLOOR_MM).z
-        soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
-    if soft and fitted is not None:  # from the fitted skeleton, its joints wandering as much as they were measured to
-        res = refine_skeleton(start.parent, fitted.origin, start.marker_segment, fitted.marker_local,
-                              pts[use] if obs is None else obs, pose.rot, pose.root_pos,
-                              soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
-    elif soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
-        res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
-                              pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+        data = pts[use] if obs is None else obs
+        skin_z = fitted.info["refined"]["skin_z"]
+        if soft_sigma > 0:  # how far the joints wander, measured at the fitted skeleton
+            soft_kids = sorted(_soft_joints(start, 1.0))
+            # on as many frames as the fits that chose the start (all 1800 cost 0.8 s more on a 48-marker take)
+            sub = np.unique(np.linspace(0, use.size - 1, min(use.size, frames)).round().astype(int))
+            slack = slack_sigma(start.parent, fitted.origin, start.marker_segment, fitted.marker_local, data[sub],
+                                pose.rot[sub], pose.root_pos[sub], soft_kids, sn)
+            if slack > NOISE_FLOOR_MM:
+                soft = {c: slack for c in soft_kids}
+        # from the fitted skeleton, its joints rigid or wandering as much as they were measured to
+        res = refine_skeleton(start.parent, fitted.origin, start.marker_segment, fitted.marker_local, data, pose.rot,
+                              pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()}, **kw)
+    else:
+        res = None
+        carried = skin is not None and soft_sigma > 0 and skin > SKIN_Z
+        if carried:
+            # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
+            # soft fit alone
+            skin_z, soft = skin, _soft_joints(start, soft_sigma)
+        if not soft:
+            res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                                  pose.rot, pose.root_pos, **kw)
+        # the carried test says skin motion, but no joint here could be soft: this rigid fit is the one that counts,
+        # and the test is made at it (the carried one was made at a MAP of 20 iterations)
+        rigid_anyway = carried and not soft
+        if skin is not None and not retest and res is not None and not rigid_anyway:
+            skin_z = skin
+        elif soft_sigma > 0 and res is not None:
+            # soft joints model skin motion: only where the rigid fit's residual follows the joint angles (the start's
+            # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
+            skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
+                                 res.root_pos, noise=NOISE_FLOOR_MM).z
+            soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
+        if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
+            res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
+                                  pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()},
+                                  **kw)
     before = res.rms[0]
     # the residual is the noise: what lies far beyond it is no draw of it (on more frames, left out before the fit)
     if gross and not soft and skin_z <= SKIN_Z and fitted is None:

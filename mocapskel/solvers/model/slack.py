@@ -36,10 +36,10 @@ def slack_moments(parent, origin, marker_segment, marker_local, observed, rot, r
         sl = slice(a, min(F, a + chunk))
         Hff, X, _, _ = pr.normal_equations(sl, p, rot, d, l)
         # a segment a frame does not see leaves its rotation free: a tiny ridge, its rows apart from the rest
-        Hinv = np.linalg.inv(Hff + 1e-6 * np.eye(pr.nf))
-        e = -(Hinv[:, pr.se] @ X[..., -1:])[..., 0].reshape(-1, ns, 3)
+        Hse = np.linalg.inv(Hff + 1e-6 * np.eye(pr.nf))[:, pr.se]  # the offsets' rows of the inverse
+        e = -(Hse @ X[..., -1:])[..., 0].reshape(-1, ns, 3)
         e2 += np.einsum("fci,fci,fc->c", e, e, ok[sl])
-        tr += np.einsum("fci,fc->c", np.diagonal(Hinv[:, pr.se][:, :, pr.se], axis1=1, axis2=2).reshape(-1, ns, 3), ok[sl])
+        tr += np.einsum("fci,fc->c", np.diagonal(Hse[:, :, pr.se], axis1=1, axis2=2).reshape(-1, ns, 3), ok[sl])
     return e2, tr, ok.sum(0)
 
 
