@@ -50,10 +50,31 @@ def at_true_joints(skel, motion, truth):
     return origin, local
 
 
+def refits(skel, fit, truth, points: np.ndarray) -> dict:
+    """{column: the refit (:func:`~mocapskel.solvers.model.calibrate.refine_skeleton`'s result)} of ``skel`` (the rigid
+    stage's) from the true joints on its refinement's frames of ``points``, ``fit`` its IK (see the module)."""
+    from mocapskel.solvers.model.calibrate import refine_skeleton
+
+    origin, local = at_true_joints(skel, fit, truth)
+    S = len(skel.names)
+    use = skel.pose_frames
+    ref = skel.info["refined"]
+    kw = dict(iterations=60, ref_frame=int(np.searchsorted(use, skel.rest_frame)), anchor=(origin, local))
+    args = (skel.parent, origin, skel.marker_segment, local, points[use], skel.pose_rot, skel.pose_root)
+    held = np.where((skel.parent >= 0)[:, None], 1e6, 0.0) * np.ones((S, 2))
+    noise2 = ref["soft_noise_mm"] ** 2  # the noise variance the data term sees (the data's weight in it)
+    prior = np.zeros((S, 2))
+    for k, sig in ref["prior_sigma_mm"].items():
+        prior[skel.names.index(k)] = [noise2 / x**2 if x else 0.0 for x in sig]
+    soft = {skel.names.index(n): noise2 / s**2 for n, s in (ref.get("soft_sigma_mm") or {}).items()}
+    return {"held": refine_skeleton(*args, prior_weights=held, **kw),
+            "prior_at_truth": refine_skeleton(*args, prior_weights=prior, soft=soft, **kw),
+            "no_prior": refine_skeleton(*args, **kw)}
+
+
 def case(args: tuple[str, int, int]) -> tuple[str, int, dict]:
     motion_name, seed, frames = args
     from mocapskel import evaluate, pipeline
-    from mocapskel.solvers.model.calibrate import refine_skeleton
     from mocapskel.stages import rigid
     from mocapskel.synth.presets import make, realistic
 
@@ -62,23 +83,8 @@ def case(args: tuple[str, int, int]) -> tuple[str, int, dict]:
     joints = pipeline.run_until(evaluate.true_topology(take.truth, clean), "joints").artifact
     skel = pipeline.run_until(joints, "rigid", {"rigid": rigid.Params(uncertainty=False)}).artifact
     fit = pipeline.run_until(skel, "ik").artifact
-    origin, local = at_true_joints(skel, fit, take.truth)
-    S = len(skel.names)
-    use = skel.pose_frames
-    ref = skel.info["refined"]
-    kw = dict(iterations=60, ref_frame=int(np.searchsorted(use, skel.rest_frame)), anchor=(origin, local))
-    args_ = (skel.parent, origin, skel.marker_segment, local, clean.points[use], skel.pose_rot, skel.pose_root)
-    held = np.where((skel.parent >= 0)[:, None], 1e6, 0.0) * np.ones((S, 2))
-    noise2 = ref["soft_noise_mm"] ** 2  # the noise variance the data term sees (the data's weight in it)
-    prior = np.zeros((S, 2))
-    for k, sig in ref["prior_sigma_mm"].items():
-        prior[skel.names.index(k)] = [noise2 / x**2 if x else 0.0 for x in sig]
-    soft = {skel.names.index(n): noise2 / s**2 for n, s in (ref.get("soft_sigma_mm") or {}).items()}
-    fits = {"held": refine_skeleton(*args_, prior_weights=held, **kw),
-            "prior_at_truth": refine_skeleton(*args_, prior_weights=prior, soft=soft, **kw),
-            "no_prior": refine_skeleton(*args_, **kw)}
     out = {"fit": evaluate.score_motion(fit, take.truth).joint_rms_mm}
-    for name, res in fits.items():
+    for name, res in refits(skel, fit, take.truth, clean.points).items():
         mot = pipeline.run_until(replace(skel, origin=res.origin, marker_local=res.marker_local), "ik").artifact
         out[name] = evaluate.score_motion(mot, take.truth).joint_rms_mm
     return motion_name, seed, out
