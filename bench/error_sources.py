@@ -61,7 +61,8 @@ def refits(skel, fit, truth, points: np.ndarray) -> dict:
     ref = skel.info["refined"]
     kw = dict(iterations=60, ref_frame=int(np.searchsorted(use, skel.rest_frame)), anchor=(origin, local))
     args = (skel.parent, origin, skel.marker_segment, local, points[use], skel.pose_rot, skel.pose_root)
-    held = np.where((skel.parent >= 0)[:, None], 1e6, 0.0) * np.ones((S, 2))
+    held = np.zeros((S, 2))
+    held[skel.parent >= 0] = 1e6  # every joint held where it starts, in both of its segments' frames
     noise2 = ref["soft_noise_mm"] ** 2  # the noise variance the data term sees (the data's weight in it)
     prior = np.zeros((S, 2))
     for k, sig in ref["prior_sigma_mm"].items():

@@ -25,7 +25,7 @@ def test_the_refits_start_at_the_true_joints():
     sc = evaluate.score_motion(held, take.truth)
     assert len(sc.joint_rms_each) == 14
     # the joints where the truth has them: what IK leaves of 1 mm noise (measured 1.21 mm, the worst joint 1.9; the
-    # fit itself 4.7, its left wrist 12.3 and left ankle 9.7, along axes the walk hardly turns about)
+    # fit itself 4.7, its left wrist 12.3 and left ankle 9.7)
     assert sc.joint_rms_mm < 2.0, sc.joint_rms_each
     assert max(sc.joint_rms_each.values()) < 3.0, sc.joint_rms_each
     assert np.isfinite(got["prior_at_truth"].origin).all() and np.isfinite(got["no_prior"].origin).all()
