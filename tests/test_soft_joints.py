@@ -53,13 +53,13 @@ def test_normal_equations_with_soft_joints_match_a_dense_finite_difference_jacob
 
 def test_only_joints_between_segments_with_poses_of_their_own_are_soft():
     """A segment of one or two markers is posed through its joints, so its joints stay rigid."""
-    from mocapskel.solvers.model.joint_map import _soft_joints
+    from mocapskel.solvers.model.joint_map import soft_joints
 
     for counts, soft in (((4, 3, 3), {1, 2}), ((3, 2, 3), set()), ((4, 3, 1), {1})):
         take = hang_chain(counts, 60, rng=np.random.default_rng(1), link_length=300.0, noise=0.3)
         skel = pipeline.run_until(take.markers, "rigid", {}).artifact
         n = np.bincount(skel.marker_segment, minlength=len(skel.names))
-        got = _soft_joints(skel, 2.0)
+        got = soft_joints(skel, 2.0)
         assert set(got) == {c for c in range(len(skel.names)) if skel.parent[c] >= 0
                             and min(n[c], n[skel.parent[c]]) >= 3}, (counts, got)
         assert len(got) == len(soft) and set(got.values()) <= {2.0}

@@ -17,15 +17,17 @@ from ..errors import DataError
 from ..model.leave_out import cut_off, leave_out, segment_words
 from ..model.tree import depth_first_order
 from ..model.naming import segment_names
-from ..solvers.model.joint_map import SKIN_Z, map_refine, map_setup, noise_sigma, residual_correlation
+from ..solvers.model.joint_map import (NOISE_FLOOR_MM, SKIN_Z, map_refine, map_setup, noise_sigma, residual_correlation,
+                                       soft_joints)
 from ..solvers.model.links import with_links
 from ..solvers.parallel import run_forked
 from ..solvers.rigid_shape import procrustes_shape
 from ..solvers.rotations import rotation_between
 from ..solvers.model.uncertainty import skeleton_uncertainty
+from ..solvers.model.skin import skin_motion
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 30
+VERSION = 31
 
 
 @dataclass(frozen=True)
@@ -171,6 +173,12 @@ class Params:
     (:func:`~mocapskel.solvers.model.joint_map.within_markers`): along that axis the markers do not place a joint, and
     the gait set's found groupings had knees 395-446 mm out of the leg there (checking half 95.0 -> 67.9 mm, tuning
     64.8 -> 64.3, true groupings and the real checking half the same; BENCHMARKS, "A joint's prior within its limb")."""
+    skin_retest: bool = True
+    """Where no joint can be soft (no two joined segments of three markers or more) and the kept start's MAP says
+    skin motion (``skin_z`` above :data:`~mocapskel.solvers.model.joint_map.SKIN_Z`), the test decides only the frames
+    the fit keeps. A joint the fit left off makes the residual follow that joint's angle as skin does, so the rigid
+    model is fitted again on ``rigid_frames`` from it and the test made there; where the residual then is noise, that
+    fit is kept (BENCHMARKS, "The skin test at the fit on more frames")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -359,17 +367,31 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         return outs[0]
     best = outs[win]
     z = best.info["refined"]["skin_z"]  # NaN where the skin test was not made (soft_sigma 0)
+    c, st = starts[win]
+    fitted, first = best, None
+    if (np.isfinite(z) and z > SKIN_Z and params.skin_retest and not soft_joints(st, 1.0)
+            and params.rigid_frames > params.refine_frames):
+        # no joint can be soft here, so the test decides only the frames; and a joint the fit left off makes the
+        # residual follow its angle as skin does: the rigid model on more frames, and the test again at its fit
+        again = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], soft_sigma=0.0, **model)
+        z2 = skin_motion(again.parent, again.marker_segment, again.origin, again.marker_local,
+                         pts[again.pose_frames], again.pose_rot, again.pose_root, noise=NOISE_FLOOR_MM).z
+        if z2 <= SKIN_Z and again.info["refined"]["frames"] > best.info["refined"]["frames"]:
+            fitted = replace(again, info=dict(again.info, refined=dict(again.info["refined"], skin_z=z2)))
+            z, first = z2, z
+        else:  # skin there too: the fit on the refinement's frames stays
+            best = replace(best, info=dict(best.info, refined=dict(best.info["refined"], skin_z_retest=z2)))
     if np.isfinite(z) and z <= SKIN_Z and params.rigid_frames > params.refine_frames:
-        c, st = starts[win]
         # every frame at full weight: the residual does not follow the pose here (the skin test), and the factor was
         # measured on the refinement's frames (with it, a functional knee trial whose still body is not rigid, factor 21,
         # lost 15 mm)
-        more = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], soft_sigma=params.soft_sigma,
-                          **model)
+        more = map_refine(st, c, fitted=fitted, more=params.rigid_frames, setup=setups[win],
+                          soft_sigma=params.soft_sigma, **model)
         if more.info["refined"]["frames"] > best.info["refined"]["frames"]:
+            extra = {} if first is None else {"skin_z_first": first}
             best = replace(more, info=dict(more.info, refined=dict(
                 more.info["refined"], neg_log_posterior=best.info["refined"]["neg_log_posterior"],
-                frames_scored=best.info["refined"]["frames"])))
+                frames_scored=best.info["refined"]["frames"], **extra)))
     info = dict(best.info)
     info["refined"] = dict(info["refined"], start=("joints", "framework")[win],
                            neg_log_posterior_starts=dict(zip(("joints", "framework"), nlp)), data_inflate=kappa)

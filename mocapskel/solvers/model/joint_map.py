@@ -42,7 +42,7 @@ one-marker leaf's joint at its parent's end, :func:`one_marker_ends`): a second 
 along the axis ``a_c`` alone, sigma_hs = ``hinge_scale`` x the segment's size (:func:`_hinge_priors`). Along it
 the markers' information is the joint's small turns about the other axes, which skin motion makes as well.
 
-Soft joints (optional, ``soft_sigma`` > 0, :func:`_soft_joints`): in each frame a joint between two segments of
+Soft joints (optional, ``soft_sigma`` > 0, :func:`soft_joints`): in each frame a joint between two segments of
 three markers or more may sit off its fixed place by a Gaussian offset, a model of marker clusters sliding on the
 skin. Only where the take shows skin motion: the residual of the rigid MAP follows its joint angles (the skin
 regression's ``z``, :func:`~mocapskel.solvers.model.skin.skin_motion`, above ``SKIN_Z``), and the soft MAP is then
@@ -320,7 +320,7 @@ def limb_lines(skel: Skeleton, rot: np.ndarray, pts: np.ndarray) -> list[tuple[i
     return out
 
 
-def _soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
+def soft_joints(skel: Skeleton, sigma: float) -> dict[int, float]:
     """{child segment: ``sigma``} for the joints that may be soft: both segments carry three markers or more, so
     that each has a pose of its own (a segment of one or two markers is posed through its joints)."""
     n = np.bincount(skel.marker_segment[skel.marker_segment >= 0], minlength=len(skel.names))
@@ -473,7 +473,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         data = pts[use] if obs is None else obs
         skin_z = fitted.info["refined"]["skin_z"]
         if soft_sigma > 0:  # how far the joints wander, measured at the fitted skeleton
-            soft_kids = sorted(_soft_joints(start, 1.0))
+            soft_kids = sorted(soft_joints(start, 1.0))
             # on as many frames as the fits that chose the start (all 1800 cost 0.8 s more on a 48-marker take)
             sub = np.unique(np.linspace(0, use.size - 1, min(use.size, frames)).round().astype(int))
             slack = slack_sigma(start.parent, fitted.origin, start.marker_segment, fitted.marker_local, data[sub],
@@ -489,7 +489,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
         if carried:
             # the skin test made already, on a near posterior's MAP (the same take, the data weighed otherwise): the
             # soft fit alone
-            skin_z, soft = skin, _soft_joints(start, soft_sigma)
+            skin_z, soft = skin, soft_joints(start, soft_sigma)
         if not soft:
             res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                                   pose.rot, pose.root_pos, **kw)
@@ -503,7 +503,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
             # would, wherever its joints are off: a rigid take's walk scored z = 52 there)
             skin_z = skin_motion(start.parent, start.marker_segment, res.origin, res.marker_local, pts[use], res.rot,
                                  res.root_pos, noise=NOISE_FLOOR_MM).z
-            soft = _soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
+            soft = soft_joints(start, soft_sigma) if skin_z > SKIN_Z and soft_fit else {}
         if soft:  # from the start, as the rigid fit was (from the rigid fit's joints a generated reach lost 32 mm)
             res = refine_skeleton(start.parent, start.origin, start.marker_segment, start.marker_local, pts[use],
                                   pose.rot, pose.root_pos, soft={c: inflate * sn**2 / s**2 for c, s in soft.items()},
