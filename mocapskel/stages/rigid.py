@@ -27,7 +27,7 @@ from ..solvers.model.uncertainty import skeleton_uncertainty
 from ..solvers.model.skin import skin_motion
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 31
+VERSION = 32
 
 
 @dataclass(frozen=True)
@@ -177,8 +177,9 @@ class Params:
     """Where no joint can be soft (no two joined segments of three markers or more) and the kept start's MAP says
     skin motion (``skin_z`` above :data:`~mocapskel.solvers.model.joint_map.SKIN_Z`), the test decides only the frames
     the fit keeps. A joint the fit left off makes the residual follow that joint's angle as skin does, so the rigid
-    model is fitted again on ``rigid_frames`` from it and the test made there; where the residual then is noise, that
-    fit is kept (BENCHMARKS, "The skin test at the fit on more frames")."""
+    model is fitted again on ``rigid_frames`` from it (``weight_iterations``, as the first MAP) and the test made
+    there; where the residual then is noise, the take takes the rigid path from that fit (BENCHMARKS, "The skin test
+    at the fit on more frames")."""
     uncertainty: bool = True
     """Every joint's uncertainty (:mod:`~mocapskel.solvers.model.uncertainty`) into ``info["uncertainty"]``;
     it moves no joint."""
@@ -373,7 +374,8 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
             and params.rigid_frames > params.refine_frames):
         # no joint can be soft here, so the test decides only the frames; and a joint the fit left off makes the
         # residual follow its angle as skin does: the rigid model on more frames, and the test again at its fit
-        again = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], soft_sigma=0.0, **model)
+        again = map_refine(st, c, fitted=best, more=params.rigid_frames, setup=setups[win], soft_sigma=0.0,
+                           **dict(model, iterations=params.weight_iterations))
         z2 = skin_motion(again.parent, again.marker_segment, again.origin, again.marker_local,
                          pts[again.pose_frames], again.pose_rot, again.pose_root, noise=NOISE_FLOOR_MM).z
         if z2 <= SKIN_Z and again.info["refined"]["frames"] > best.info["refined"]["frames"]:
