@@ -3,6 +3,7 @@ explicit Gaussian priors, scored against generated ground truth."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -210,7 +211,6 @@ def test_a_two_marker_range_of_motion_is_tested_for_skin_at_the_fit_that_counts(
     assert all(abs(v) < 0.05 for v in sc.bone_err.values()), sc.bone_err
 
 
-
 def test_a_joint_the_first_fit_left_off_is_not_taken_for_skin():
     """Two markers a segment (no joint can be soft), the generator's skin independent of the pose, the refinement on
     100 frames of 1200: its fit leaves elbows and knees off along their axes, and the residual follows those joints'
@@ -229,13 +229,12 @@ def test_a_joint_the_first_fit_left_off_is_not_taken_for_skin():
     assert not fit["soft_sigma_mm"] and fit["frames_scored"] == 100
     assert got.joint_rms_mm < 6.0 and max(got.joint_rms_each.values()) < 10.0, got.joint_rms_each
 
+
 def test_a_real_take_whose_residual_follows_its_joints_at_the_fit_on_more_frames_keeps_its_fit():
     """A real arm take (joint-localization, two and three markers a segment, no two joined segments of three): its
     skin test fires (z 8.7 measured), and at the rigid fit on more frames the residual still follows the joint angles
     (z 7.9): that is skin, and the fit on the refinement's frames stays, the same skeleton as without the test made
     again."""
-    from pathlib import Path
-
     src = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "joint-localization" / "arm-4-2-3_clean_120fps.c3d"
     if not src.is_file():
         pytest.skip(f"REAL DATA NOT FOUND at {src} — the real skin retest test did NOT run")
@@ -246,6 +245,7 @@ def test_a_real_take_whose_residual_follows_its_joints_at_the_fit_on_more_frames
     assert ref["skin_z"] > 3.0 and ref["skin_z_retest"] > 3.0 and "skin_z_first" not in ref
     assert ref["frames"] == plain.info["refined"]["frames"]
     np.testing.assert_array_equal(kept.origin, plain.origin)
+
 
 def test_joint_model_must_be_map():
     take = make(Recipe(kind="human", seed=1, frames=300))
