@@ -42,7 +42,7 @@ from ..solvers.joints.simplex import nelder_mead
 from ..solvers.joints.hybrid import solve_tree
 from ..solvers.joints.jmv import edge_alpha, jmv_joint_long
 from ..solvers.joints.centres import (
-    _rotate, along_axis_sigma, centre_from_either_side, loose_along_axis, place_on_hinge, relative_turn_deg,
+    MIN_TURN_DEG, _rotate, along_axis_sigma, centre_from_either_side, loose_along_axis, place_on_hinge, relative_turn_deg,
     sphere_centre, spread_frames,
 )
 from ..solvers.joints.cost import distance_penalty, joint_cost
@@ -74,7 +74,7 @@ class Params:
     every degree of freedom — on real takes, most joints: a hinge's centre, or a joint
     between two-marker segments, otherwise slides off along what the markers do not fix."""
     alpha_k: float = 2.0
-    min_turn_deg: float = 5.0
+    min_turn_deg: float = MIN_TURN_DEG
     """Joints whose segments turn less than this relative to each other (95th
     percentile over frames) are reported as poorly determined."""
     hinge_ratio: float = 0.4

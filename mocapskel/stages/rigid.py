@@ -27,7 +27,7 @@ from ..solvers.model.uncertainty import skeleton_uncertainty
 from ..solvers.model.skin import skin_motion
 from ..solvers.model.worth import joint_overdispersion
 
-VERSION = 32
+VERSION = 33
 
 
 @dataclass(frozen=True)
@@ -173,6 +173,12 @@ class Params:
     (:func:`~mocapskel.solvers.model.joint_map.within_markers`): along that axis the markers do not place a joint, and
     the gait set's found groupings had knees 395-446 mm out of the leg there (checking half 95.0 -> 67.9 mm, tuning
     64.8 -> 64.3, true groupings and the real checking half the same; BENCHMARKS, "A joint's prior within its limb")."""
+    square_limbs: bool = True
+    """The prior's mean of a shoulder hung on a two-marker upper arm, along the axis the arm swings about, level with
+    the elbow: the bone square to that axis (:func:`~mocapskel.solvers.model.joint_map.square_first_joints`). The
+    joints stage's guess there falls towards the thorax's middle; realistic cmu41 takes, true grouping, tuning /
+    checking half: 36.97 / 39.72 -> 33.77 / 36.54 mm, the runs' shoulders 28-126 -> 21-76 mm (BENCHMARKS, "A shoulder
+    level with its elbow")."""
     skin_retest: bool = True
     """Where no joint can be soft (no two joined segments of three markers or more) and the kept start's MAP says
     skin motion (``skin_z`` above :data:`~mocapskel.solvers.model.joint_map.SKIN_Z`), the test decides only the frames
@@ -311,7 +317,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
                  bone_sigma=params.bone_sigma,
                  hinge_scale=params.hinge_scale, hinge_placed=params.hinge_placed, mirror=params.mirror_prior,
                  gross=params.gross_errors, line_sigma=params.line_sigma, like_widths=params.like_widths,
-                 pose_trust=params.pose_trust, within=params.mean_within)
+                 pose_trust=params.pose_trust, within=params.mean_within, square=params.square_limbs)
 
     if params.links:  # as scored by the first MAP's fit (rigid joints, ``weight_iterations``)
         starts = with_links(joints, starts, dict(model, iterations=params.weight_iterations, soft_sigma=0.0,
@@ -324,7 +330,7 @@ def _map_fit(joints: Joints, skel: Skeleton, rest: int, parent: np.ndarray, pare
         setup = setups[i]
         if setup is None:
             setup = map_setup(st, c, **{k: model[k] for k in ("frames", "mean", "hinge_ratio", "mean_ratio",
-                                                               "like_widths", "within")})
+                                                               "like_widths", "within", "square")})
         out = map_refine(st, c, soft_sigma=soft_sigma, data_inflate=inflate, skin=None if skin is None else skin[i],
                          setup=setup, **dict(model, **kw))
         return replace(out, joints=None), setup  # sent back from a forked process: without the take

@@ -98,6 +98,11 @@ def sphere_centre(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, int | None]
     return np.full((A.shape[0], 3), np.nan), None
 
 
+#: Two segments that turn less than this relative to each other (:func:`relative_turn_deg`) leave their joint poorly
+#: determined: the joints stage says so, and no axis of their turns is taken for one.
+MIN_TURN_DEG = 5.0
+
+
 def relative_turn_deg(R1: np.ndarray, R2: np.ndarray) -> float:
     """How far two segments turn relative to each other (95th percentile over frames, degrees).
 

@@ -36,6 +36,10 @@ markers' residuals in their segments' frames, measured from the take (:func:`res
 Like limbs (optional, ``bone_sigma`` > 0): the two bones of a left/right pair (:func:`like_bone_pairs`)
 differ in length by N(0, sigma_b^2), sigma_b = ``bone_sigma`` x their length: one factor per pair.
 
+A shoulder on a two-marker upper arm that swings about one axis has its mean level with its elbow along that axis
+(optional, ``square``, :func:`square_first_joints`): an arm swings across its bone, and the joints stage's guess there
+falls towards the thorax's middle.
+
 Hinges whose place along their axis the mean knows (optional, ``hinge_scale`` > 0: a marker over the axis,
 the deepening's geometry; a limb's end segment's markers' middle, ``mean="deepened+leaf"``, which also puts a
 one-marker leaf's joint at its parent's end, :func:`one_marker_ends`): a second Gaussian
@@ -91,6 +95,7 @@ from .slack import slack_sigma
 from ..joint_moves import _move_joint, _with_moves
 from ..rest_pose import _bone_line, _rest_groups, _rest_markers
 from ..rigid_shape import procrustes_shape
+from ..joints.centres import MIN_TURN_DEG, relative_turn_deg
 from ..joints.hinges import _hinge_direction, _relative_rotations
 from ..rotations import segments_seen
 
@@ -276,6 +281,60 @@ def within_markers(skel: Skeleton, ratio: float, skip: set[str]) -> Skeleton:
     return _with_moves(skel, origin, local, kids, "within_markers", moved) if moved else skel
 
 
+#: A limb swings about one axis where its turns about the second axis spread at most this fraction of those about
+#: the first (the joints stage's hinge test, ``stages.joints.Params.hinge_ratio``): generated walks' and runs' arms
+#: 0.04-0.07, kicks' 0.17-0.27; a two-marker range of motion on 100 frames, whose shoulders the markers place,
+#: 0.52-0.59.
+SWING_RATIO = 0.4
+
+
+def square_first_joints(skel: Skeleton, ratio: float, placed: set[str]) -> Skeleton:
+    """``skel`` with every limb's first joint on a trunk (a shoulder: its parent not the root and carrying other
+    children; its own segment of two markers, with one child) that swings about one axis (it turns
+    :data:`~mocapskel.solvers.joints.centres.MIN_TURN_DEG` or more, and passes the hinge test ``ratio`` of
+    :func:`_hinge_direction` with the segment's twist about its two markers' line left out) moved along that axis to
+    where its bone is square to it, level with its child's joint (an elbow), each segment's markers kept where they
+    are; the prior's mean there. Joints named in ``placed`` (put by a marker over their axis) stay.
+
+    An arm swings across its bone. Along the axis of the swing the markers do not place the shoulder (a walk, a run),
+    and two markers on the upper arm leave the joints stage to guess there (no SCoRE: the segment's own twist is the
+    joints'); its guesses fall towards the middle of the two segments' markers, the thorax's seven pulling a shoulder
+    towards the body's midline (a generated run's shoulders 150-200 mm in from the truth), while the elbow, which the
+    forearm's markers turn about, is placed. Where the arm turns every way (a range of motion) the markers place the
+    shoulder and it hardly moves; a segment of three or more markers has its own twist, and SCoRE's answer stays
+    (moved, a sliding cluster set's shoulders went 27 -> 78 mm from the truth). A hip hangs from the root: squared to
+    its knee, a real walk's (cmu_16_07) hips went 17 and 35 -> 88 mm from the reference, its knees' means lying
+    lateral, where the generated gait set's hips gained (BENCHMARKS, "A shoulder level with its elbow")."""
+    if skel.pose_rot is None or skel.pose_frames is None or skel.joints is None:
+        return skel
+    parent = np.asarray(skel.parent)
+    seen = segments_seen(skel.marker_segment, len(skel.names), skel.joints.topology.segments.markers.points[skel.pose_frames])
+    pos, seg, _ = _rest_groups(skel)
+    origin, local = skel.origin.copy(), skel.marker_local.copy()
+    moved: dict[str, float] = {}
+    done = set()
+    for c in np.flatnonzero(parent >= 0):
+        c, p = int(c), int(parent[c])
+        kids = np.flatnonzero(parent == c)
+        own = pos[seg == c]
+        if (skel.names[c] in placed or len(kids) != 1 or len(own) != 2
+                or parent[p] < 0 or (parent == p).sum() < 2):
+            continue
+        rel = _relative_rotations(skel.pose_rot, p, c, seen)
+        if rel is None or not relative_turn_deg(skel.pose_rot[:, p], skel.pose_rot[:, c]) >= MIN_TURN_DEG:
+            continue  # (a limb that barely turns has no axis to speak of: a reach's still legs)
+        # its twist, which two markers hardly fix, left out about their line (the joint's own bone line is in doubt)
+        ax = _hinge_direction(rel, ratio, (own[1] - own[0]) / np.linalg.norm(own[1] - own[0]))
+        if ax is None:
+            continue
+        shift = float((origin[int(kids[0])] - origin[c]) @ ax)
+        if shift:
+            origin, local = _move_joint(origin, local, skel.marker_segment, c, shift * ax)
+            moved[skel.names[c]] = round(abs(shift), 1)
+            done.add(c)
+    return _with_moves(skel, origin, local, done, "squared", moved) if moved else skel
+
+
 #: A limb's middle joint lies between its neighbours, at least this fraction of the way from either: a limb's two
 #: long bones are within a factor of 3 of each other's length (thigh and shank, upper arm and forearm: 0.45-0.55 of
 #: the way). A found tree whose "limb" is a head carrying an arm put its shoulder 0.07 of the way from the neck.
@@ -357,11 +416,13 @@ class MapSetup:
 
 
 def map_setup(start: Skeleton, centres: np.ndarray, *, frames: int, mean: str = "deepened", hinge_ratio: float = 0.6,
-              mean_ratio: float | None = None, like_widths: bool = True, within: bool = False) -> MapSetup | None:
+              mean_ratio: float | None = None, like_widths: bool = True, within: bool = False,
+              square: bool = False) -> MapSetup | None:
     """The refinement's frames, ``start`` posed on them from ``centres`` (F, E, 3), and the prior's centre: ``start``'s
     joints, deepened (``mean`` "deepened"), then leaf-centred ("deepened+leaf"), by the hinge test ``mean_ratio`` (None:
-    ``hinge_ratio``), and with ``within`` brought within their limb (the keywords as :func:`map_refine`'s). None where
-    the take is too short to refine (under 10 frames)."""
+    ``hinge_ratio``), with ``within`` brought within their limb, and with ``square`` limbs' first joints square to
+    the axis they swing about (:func:`square_first_joints`) (the keywords as :func:`map_refine`'s). None where the
+    take is too short to refine (under 10 frames)."""
     ratio = hinge_ratio if mean_ratio is None else mean_ratio
     pts = start.joints.topology.segments.markers.points
     use = refinement_frames(start, frames)
@@ -376,6 +437,9 @@ def map_setup(start: Skeleton, centres: np.ndarray, *, frames: int, mean: str = 
         centre = one_marker_ends(centre_leaf_hinges(centre, ratio))
     if within:  # joints the estimators left beyond their markers along their axis
         centre = within_markers(centre, ratio, set(centre.info.get("deepened", {})) | set(centre.info.get("leaf_centred", {})))
+    if square:  # limbs' first joints level with their next joints along the axis they swing about
+        centre = square_first_joints(replace(centre, joints=start.joints, pose_frames=use, pose_rot=pose.rot,
+                                             pose_root=pose.root_pos), SWING_RATIO, set(centre.info.get("deepened", {})))
     return MapSetup(use, pose.rot, pose.root_pos, replace(centre, joints=None))
 
 
@@ -385,7 +449,7 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
                soft_sigma: float = 0.0, mirror: bool = False, fitted: Skeleton | None = None, more: int = 0,
                gross: bool = True, line_sigma: float = 0.0, data_inflate: float = 1.0, skin: float | None = None,
                soft_fit: bool = True, mean_ratio: float | None = None, like_widths: bool = True,
-               retest: bool = True, pose_trust: float = 0.0, within: bool = False,
+               retest: bool = True, pose_trust: float = 0.0, within: bool = False, square: bool = False,
                setup: MapSetup | None = None) -> Skeleton:
     """``start`` refined to the MAP of the model (see the module), the prior centred on ``start``'s
     joints; ``centres`` (F, E, 3) (topology's edge order) start the poses. The skeleton's
@@ -414,13 +478,14 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     (``refine_skeleton``'s). ``soft_fit=False``: the
     skin test made (``info["refined"]["skin_z"]``) but no soft fit. ``mean_ratio``: the hinge test of the prior's mean
     (the deepening and the leaves' centring) instead of ``hinge_ratio``, which the hinge prior along the axis keeps.
-    ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
+    ``square``: a shoulder's mean level with its elbow along the axis the arm swings about
+    (:func:`square_first_joints`). ``like_widths``: the mean's deepening gives like limbs' joints the mean of their two half-widths
     (:func:`~mocapskel.solvers.priors.deepen.like_half_widths`). ``setup``: :func:`map_setup`'s answer for these
     ``start``, ``centres``, ``frames``, ``mean``, hinge test, ``like_widths`` and ``within`` (made here when None)."""
     pts = start.joints.topology.segments.markers.points
     if setup is None:
         setup = map_setup(start, centres, frames=frames, mean=mean, hinge_ratio=hinge_ratio, mean_ratio=mean_ratio,
-                          like_widths=like_widths, within=within)
+                          like_widths=like_widths, within=within, square=square)
     if setup is None:
         return start
     use, pose = setup.use, setup
@@ -521,7 +586,8 @@ def map_refine(start: Skeleton, centres: np.ndarray, *, frames: int, iterations:
     info = dict(start.info)
     info["refined"] = {"frames": int(use.size), "iterations": res.n_iter, "marker_rms_mm_before": before,
                        "marker_rms_mm_after": res.rms[1], "joint_model": "map", "noise_sigma_mm": sn, "effective_frames": n_eff, "like_bones": len(ties),
-                       "prior_scale": scale, "neg_log_posterior": nlp, "mean_within_mm": dict(centre.info.get("within_markers", {})), "skin_z": skin_z, "gross_residuals": n_gross,
+                       "prior_scale": scale, "neg_log_posterior": nlp, "mean_within_mm": dict(centre.info.get("within_markers", {})),
+                       "mean_squared_mm": dict(centre.info.get("squared", {})), "skin_z": skin_z, "gross_residuals": n_gross,
                        "soft_sigma_mm": {start.names[c]: s for c, s in soft.items()}, "soft_noise_mm": float(np.sqrt(inflate) * sn),
                        "slack_sigma_mm": slack,
                        "prior_sigma_mm": {start.names[k]: [float(x) if np.isfinite(x) else None for x in sig[k]] for k in range(len(start.names))
